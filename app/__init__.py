@@ -1,0 +1,1 @@
+"""viewloc HTTP service (FastAPI): parses, validates, calls core and store, serialises."""

@@ -1,0 +1,5 @@
+"""Shared test set-up: headless rendering everywhere."""
+
+import os
+
+os.environ.setdefault("PYOPENGL_PLATFORM", "egl")

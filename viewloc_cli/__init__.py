@@ -1,0 +1,1 @@
+"""The ``viewloc`` command line: learn, match, serve, worker, bench."""

@@ -1,0 +1,3 @@
+from viewloc_cli.main import main
+
+raise SystemExit(main())

@@ -1,0 +1,183 @@
+"""Pinhole camera intrinsics in the OpenCV convention.
+
+Pixel coordinates follow OpenCV: the centre of the top-left pixel is (0, 0),
+x to the right, y down; the camera looks along +z.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from viewloc_core.errors import InvalidCameraError
+
+
+@dataclass(frozen=True, slots=True)
+class Camera:
+    """Intrinsics and image size of a (possibly distorted) pinhole camera.
+
+    Attributes
+    ----------
+    fx, fy : float
+        Focal lengths in pixels.
+    cx, cy : float
+        Principal point in pixels (OpenCV convention).
+    width, height : int
+        Image size in pixels.
+    dist : tuple of float
+        OpenCV distortion coefficients ``(k1, k2, p1, p2[, k3])``; empty for
+        an ideal pinhole.
+    """
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+    dist: tuple[float, ...] = field(default=())
+
+    def __post_init__(self) -> None:
+        for name in ("fx", "fy", "cx", "cy"):
+            value = getattr(self, name)
+            if not math.isfinite(value):
+                raise InvalidCameraError(f"{name} must be finite, got {value}", name)
+        if self.fx <= 0 or self.fy <= 0:
+            raise InvalidCameraError("focal lengths fx and fy must be positive", "fx")
+        if self.width <= 0 or self.height <= 0:
+            raise InvalidCameraError("width and height must be positive", "width")
+        if len(self.dist) not in (0, 4, 5, 8):
+            raise InvalidCameraError("dist must have 4, 5 or 8 coefficients", "dist")
+        if not all(math.isfinite(c) for c in self.dist):
+            raise InvalidCameraError("dist coefficients must be finite", "dist")
+
+    @property
+    def K(self) -> NDArray[np.float64]:
+        """(3, 3) float64 intrinsic matrix."""
+        return np.array(
+            [[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]],
+            dtype=np.float64,
+        )
+
+    @property
+    def has_distortion(self) -> bool:
+        """True when any distortion coefficient is non-zero."""
+        return any(c != 0.0 for c in self.dist)
+
+    @property
+    def focal_px(self) -> float:
+        """Geometric mean focal length in pixels, the scale used for distances."""
+        return math.sqrt(self.fx * self.fy)
+
+    @classmethod
+    def from_K(
+        cls,
+        K: NDArray[np.floating],
+        width: int,
+        height: int,
+        dist: tuple[float, ...] = (),
+    ) -> Camera:
+        """Build from a (3, 3) intrinsic matrix (skew must be zero)."""
+        K = np.asarray(K, dtype=np.float64)
+        if K.shape != (3, 3):
+            raise InvalidCameraError(f"K must be 3x3, got shape {K.shape}", "K")
+        return cls(
+            float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]),
+            int(width), int(height), tuple(float(c) for c in dist),
+        )
+
+    def scaled(self, factor: float) -> Camera:
+        """The same camera for an image resized by ``factor`` (pyramid levels).
+
+        Pixel centres map as ``u' = (u + 0.5) * factor - 0.5``.
+        """
+        return Camera(
+            self.fx * factor,
+            self.fy * factor,
+            (self.cx + 0.5) * factor - 0.5,
+            (self.cy + 0.5) * factor - 0.5,
+            max(1, round(self.width * factor)),
+            max(1, round(self.height * factor)),
+            self.dist,
+        )
+
+    def project(self, pts_cam: NDArray[np.floating]) -> NDArray[np.float64]:
+        """Project camera-frame points to pixels.
+
+        Parameters
+        ----------
+        pts_cam : (N, 3) array
+            Points in the camera frame, mm, z > 0.
+
+        Returns
+        -------
+        (N, 2) float64
+            Pixel coordinates (with distortion applied when present).
+        """
+        pts = np.asarray(pts_cam, dtype=np.float64).reshape(-1, 3)
+        z = pts[:, 2]
+        xn = pts[:, 0] / z
+        yn = pts[:, 1] / z
+        if self.has_distortion:
+            xn, yn = _distort(xn, yn, self.dist)
+        return np.stack([self.fx * xn + self.cx, self.fy * yn + self.cy], axis=1)
+
+    def undistort_points(self, uv: NDArray[np.floating]) -> NDArray[np.float64]:
+        """Remove lens distortion from pixel positions (identity without it).
+
+        Parameters
+        ----------
+        uv : (N, 2) array
+            Distorted pixel coordinates.
+
+        Returns
+        -------
+        (N, 2) float64
+            Pixel coordinates an ideal pinhole with the same K would see.
+        """
+        uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+        if not self.has_distortion:
+            return uv.copy()
+        import cv2
+
+        und = cv2.undistortPoints(
+            uv.reshape(-1, 1, 2), self.K, np.asarray(self.dist, dtype=np.float64), P=self.K
+        )
+        return und.reshape(-1, 2).astype(np.float64)
+
+    def ray(self, uv: NDArray[np.floating]) -> NDArray[np.float64]:
+        """Unit viewing rays (camera frame) through pixels, distortion removed.
+
+        Parameters
+        ----------
+        uv : (N, 2) array
+            Pixel coordinates.
+
+        Returns
+        -------
+        (N, 3) float64
+            Unit vectors with positive z.
+        """
+        und = self.undistort_points(uv)
+        rays = np.stack(
+            [(und[:, 0] - self.cx) / self.fx, (und[:, 1] - self.cy) / self.fy,
+             np.ones(len(und))],
+            axis=1,
+        )
+        return rays / np.linalg.norm(rays, axis=1, keepdims=True)
+
+
+def _distort(
+    xn: NDArray[np.float64], yn: NDArray[np.float64], dist: tuple[float, ...]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Brown-Conrady distortion of normalised coordinates (OpenCV's model)."""
+    c = list(dist) + [0.0] * (8 - len(dist))
+    k1, k2, p1, p2, k3, k4, k5, k6 = c
+    r2 = xn * xn + yn * yn
+    radial = (1 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
+    xd = xn * radial + 2 * p1 * xn * yn + p2 * (r2 + 2 * xn * xn)
+    yd = yn * radial + p1 * (r2 + 2 * yn * yn) + 2 * p2 * xn * yn
+    return xd, yd

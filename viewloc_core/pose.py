@@ -1,0 +1,164 @@
+"""Rigid poses (object -> camera) and rotation helpers.
+
+Convention (DESIGN.md §3, API.md): ``x_cam = R_m2c @ x_obj + t_m2c``, OpenCV
+camera frame (x right, y down, z forward), lengths in mm. Quaternions are
+``[w, x, y, z]`` with unit norm and ``w >= 0``. Euler angles ``euler_xyz_deg``
+are extrinsic rotations about the fixed x, then y, then z axis, so that
+``R = Rz(c) @ Ry(b) @ Rx(a)`` (SciPy's lowercase ``"xyz"``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
+
+from viewloc_core.errors import InvalidInputError
+
+Array = NDArray[np.float64]
+
+
+def orthonormalize(R: NDArray[np.floating]) -> Array:
+    """Nearest rotation matrix (Frobenius norm) to a (3, 3) matrix, det +1."""
+    U, _, Vt = np.linalg.svd(np.asarray(R, dtype=np.float64))
+    D = np.diag([1.0, 1.0, float(np.sign(np.linalg.det(U @ Vt)) or 1.0)])
+    return U @ D @ Vt
+
+
+def rot_z(angle_rad: float) -> Array:
+    """(3, 3) rotation by ``angle_rad`` about +z (counter-clockwise seen from +z)."""
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def rotation_between(a: NDArray[np.floating], b: NDArray[np.floating]) -> Array:
+    """Smallest rotation taking direction ``a`` onto direction ``b``.
+
+    The paper's ``T_{a,b}`` (§4.2): rotation about the axis perpendicular to
+    both. For opposite vectors an arbitrary perpendicular axis is used.
+
+    Parameters
+    ----------
+    a, b : (3,) array
+        Non-zero vectors (need not be unit).
+
+    Returns
+    -------
+    (3, 3) float64
+        Rotation with ``R @ a/|a| == b/|b|``.
+    """
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    a = a / np.linalg.norm(a)
+    b = b / np.linalg.norm(b)
+    axis = np.cross(a, b)
+    s = float(np.linalg.norm(axis))
+    c = float(np.clip(np.dot(a, b), -1.0, 1.0))
+    if s < 1e-12:
+        if c > 0:
+            return np.eye(3)
+        perp = np.cross(a, [1.0, 0.0, 0.0])
+        if np.linalg.norm(perp) < 1e-6:
+            perp = np.cross(a, [0.0, 1.0, 0.0])
+        perp /= np.linalg.norm(perp)
+        return Rotation.from_rotvec(np.pi * perp).as_matrix()
+    return Rotation.from_rotvec(axis / s * np.arctan2(s, c)).as_matrix()
+
+
+def rotation_angle_deg(R_a: NDArray[np.floating], R_b: NDArray[np.floating]) -> float:
+    """Angle in degrees of the relative rotation ``R_a^T R_b`` (0..180)."""
+    R_rel = np.asarray(R_a, dtype=np.float64).T @ np.asarray(R_b, dtype=np.float64)
+    # The rotation vector's norm stays accurate near 0 where arccos of the
+    # trace loses half the digits.
+    return float(np.degrees(Rotation.from_matrix(orthonormalize(R_rel)).magnitude()))
+
+
+@dataclass(frozen=True, slots=True)
+class Pose:
+    """Rigid transform from object (model) coordinates to camera coordinates.
+
+    Attributes
+    ----------
+    R_m2c : (3, 3) float64
+        Rotation, orthonormal with det +1.
+    t_m2c : (3,) float64
+        Translation in mm (the object origin in the camera frame).
+    """
+
+    R_m2c: Array
+    t_m2c: Array
+
+    def __post_init__(self) -> None:
+        R = np.asarray(self.R_m2c, dtype=np.float64)
+        t = np.asarray(self.t_m2c, dtype=np.float64).reshape(-1)
+        if R.shape != (3, 3) or t.shape != (3,):
+            raise InvalidInputError(
+                f"pose needs R (3, 3) and t (3,), got {R.shape} and {t.shape}", "pose"
+            )
+        if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
+            raise InvalidInputError("pose must be finite", "pose")
+        object.__setattr__(self, "R_m2c", R)
+        object.__setattr__(self, "t_m2c", t)
+
+    @classmethod
+    def identity(cls) -> Pose:
+        """The identity pose."""
+        return cls(np.eye(3), np.zeros(3))
+
+    @classmethod
+    def from_matrix(cls, T: NDArray[np.floating]) -> Pose:
+        """From a (4, 4) homogeneous matrix."""
+        T_m2c = np.asarray(T, dtype=np.float64)
+        return cls(T_m2c[:3, :3], T_m2c[:3, 3])
+
+    @classmethod
+    def from_quaternion(cls, q_wxyz: NDArray[np.floating], t_m2c: NDArray[np.floating]) -> Pose:
+        """From a quaternion ``[w, x, y, z]`` (normalised here) and t in mm."""
+        q = np.asarray(q_wxyz, dtype=np.float64)
+        if q.shape != (4,) or not np.all(np.isfinite(q)) or np.linalg.norm(q) < 1e-12:
+            raise InvalidInputError("quaternion must be 4 finite numbers, not all 0", "quaternion")
+        R = Rotation.from_quat([q[1], q[2], q[3], q[0]]).as_matrix()
+        return cls(R, np.asarray(t_m2c, dtype=np.float64))
+
+    @classmethod
+    def from_euler_xyz_deg(
+        cls, angles_deg: NDArray[np.floating], t_m2c: NDArray[np.floating]
+    ) -> Pose:
+        """From extrinsic x-y-z Euler angles in degrees and t in mm."""
+        R = Rotation.from_euler("xyz", np.asarray(angles_deg, dtype=np.float64), degrees=True)
+        return cls(R.as_matrix(), np.asarray(t_m2c, dtype=np.float64))
+
+    @property
+    def matrix(self) -> Array:
+        """(4, 4) homogeneous matrix."""
+        T = np.eye(4)
+        T[:3, :3] = self.R_m2c
+        T[:3, 3] = self.t_m2c
+        return T
+
+    @property
+    def quaternion_wxyz(self) -> Array:
+        """(4,) unit quaternion ``[w, x, y, z]`` with ``w >= 0``."""
+        x, y, z, w = Rotation.from_matrix(orthonormalize(self.R_m2c)).as_quat()
+        q = np.array([w, x, y, z])
+        return -q if q[0] < 0 else q
+
+    @property
+    def euler_xyz_deg(self) -> Array:
+        """(3,) extrinsic x-y-z Euler angles in degrees."""
+        return Rotation.from_matrix(orthonormalize(self.R_m2c)).as_euler("xyz", degrees=True)
+
+    def inverse(self) -> Pose:
+        """Camera -> object transform."""
+        return Pose(self.R_m2c.T, -self.R_m2c.T @ self.t_m2c)
+
+    def compose(self, other: Pose) -> Pose:
+        """``self ∘ other``: apply ``other`` first, then ``self``."""
+        return Pose(self.R_m2c @ other.R_m2c, self.R_m2c @ other.t_m2c + self.t_m2c)
+
+    def transform(self, pts_obj: NDArray[np.floating]) -> Array:
+        """Map (N, 3) object points (mm) to (N, 3) camera points (mm)."""
+        pts = np.asarray(pts_obj, dtype=np.float64).reshape(-1, 3)
+        return pts @ self.R_m2c.T + self.t_m2c
