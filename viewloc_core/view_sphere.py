@@ -121,6 +121,24 @@ def _icosahedron() -> tuple[Array, NDArray[np.int64]]:
     return verts / np.linalg.norm(verts, axis=1, keepdims=True), faces
 
 
+def _midpoint(
+    vert_list: list[Array],
+    level_of: list[int],
+    cache: dict[tuple[int, int], int],
+    a: int,
+    b: int,
+    level: int,
+) -> int:
+    """Index of the unit midpoint of edge (a, b), added once per edge."""
+    key = (a, b) if a < b else (b, a)
+    if key not in cache:
+        m = vert_list[a] + vert_list[b]
+        vert_list.append(m / np.linalg.norm(m))
+        level_of.append(level)
+        cache[key] = len(vert_list) - 1
+    return cache[key]
+
+
 def subdivided_sphere(levels: int) -> tuple[Array, NDArray[np.int64], NDArray[np.int64]]:
     """Icosahedron subdivided ``levels`` times, vertices projected to the sphere.
 
@@ -145,18 +163,11 @@ def subdivided_sphere(levels: int) -> tuple[Array, NDArray[np.int64], NDArray[np
     for level in range(1, levels + 1):
         midpoint: dict[tuple[int, int], int] = {}
         new_faces = []
-
-        def mid(a: int, b: int, lvl: int = level) -> int:
-            key = (a, b) if a < b else (b, a)
-            if key not in midpoint:
-                m = vert_list[a] + vert_list[b]
-                vert_list.append(m / np.linalg.norm(m))
-                level_of.append(lvl)
-                midpoint[key] = len(vert_list) - 1
-            return midpoint[key]
-
         for a, b, c in faces:
-            ab, bc, ca = mid(a, b), mid(b, c), mid(c, a)
+            ab, bc, ca = (
+                _midpoint(vert_list, level_of, midpoint, i, j, level)
+                for i, j in ((a, b), (b, c), (c, a))
+            )
             new_faces += [[a, ab, ca], [b, bc, ab], [c, ca, bc], [ab, bc, ca]]
         faces = np.array(new_faces, dtype=np.int64)
     return np.array(vert_list), faces, np.array(level_of, dtype=np.int64)
