@@ -1,0 +1,84 @@
+"""Dependencies handed to the routers (store, runner, settings, auth)."""
+
+from __future__ import annotations
+
+import hmac
+from typing import Annotated
+
+from fastapi import Depends, Request
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+
+from app.jobs.base import JobRunner
+from app.observability import Metrics
+from app.problems import ProblemError
+from app.settings import Settings
+from model_store import ModelStore
+
+
+def get_settings(request: Request) -> Settings:
+    """The settings the app was built with."""
+    settings: Settings = request.app.state.settings
+    return settings
+
+
+def get_store(request: Request) -> ModelStore:
+    """The store opened in the lifespan."""
+    store: ModelStore | None = getattr(request.app.state, "store", None)
+    if store is None:
+        raise ProblemError(503, "the model store is not open", "unavailable")
+    return store
+
+
+def get_runner(request: Request) -> JobRunner:
+    """The job runner started in the lifespan."""
+    runner: JobRunner | None = getattr(request.app.state, "runner", None)
+    if runner is None:
+        raise ProblemError(503, "the job runner is not running", "unavailable")
+    return runner
+
+
+def get_metrics(request: Request) -> Metrics:
+    """The app's Prometheus metrics."""
+    metrics: Metrics = request.app.state.metrics
+    return metrics
+
+
+SettingsDep = Annotated[Settings, Depends(get_settings)]
+StoreDep = Annotated[ModelStore, Depends(get_store)]
+RunnerDep = Annotated[JobRunner, Depends(get_runner)]
+MetricsDep = Annotated[Metrics, Depends(get_metrics)]
+
+_bearer = HTTPBearer(auto_error=False, description="An API key from VIEWLOC_API_KEYS.")
+
+
+def require_api_key(
+    settings: SettingsDep,
+    credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
+) -> None:
+    """Check ``Authorization: Bearer <key>`` when API keys are configured.
+
+    Every configured key is compared (in constant time each), so the answer
+    time does not tell which key, or which prefix, came close.
+    """
+    keys = settings.api_key_list
+    if not keys:
+        return
+    given = credentials.credentials.encode() if credentials is not None else b""
+    ok = False
+    for key in keys:
+        ok |= hmac.compare_digest(given, key.encode())
+    if not ok:
+        raise ProblemError(
+            401, "a valid API key is required: Authorization: Bearer <key>", "unauthorized",
+            headers={"WWW-Authenticate": "Bearer"},
+        )
+
+
+def require_multipart(request: Request) -> None:
+    """Uploads are multipart/form-data; anything else is answered 415 up front."""
+    ctype = request.headers.get("content-type", "")
+    if not ctype.lower().startswith("multipart/form-data"):
+        raise ProblemError(
+            415, f"expected multipart/form-data, got {ctype or 'no content type'}",
+            "unsupported-media-type",
+        )

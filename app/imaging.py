@@ -1,0 +1,176 @@
+"""Decoding uploaded images (PNG, JPEG, TIFF, BMP; 8/16-bit; grey or colour).
+
+The pixel count is read from the file header before anything is decoded, so
+a small file that claims gigapixels (a decompression bomb) is refused without
+allocating its pixels.
+"""
+
+from __future__ import annotations
+
+import struct
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from viewloc_core.errors import InvalidImageError
+
+FORMATS = ("png", "jpeg", "tiff", "bmp")
+
+
+def sniff_format(data: bytes) -> str | None:
+    """Image format from the magic bytes, or None when it is not one we accept."""
+    if data.startswith(b"\x89PNG\r\n\x1a\n"):
+        return "png"
+    if data.startswith(b"\xff\xd8\xff"):
+        return "jpeg"
+    if data.startswith((b"II*\x00", b"MM\x00*")):
+        return "tiff"
+    if data.startswith(b"BM"):
+        return "bmp"
+    return None
+
+
+def _png_size(data: bytes) -> tuple[int, int] | None:
+    if len(data) >= 24 and data[12:16] == b"IHDR":
+        w, h = struct.unpack(">II", data[16:24])
+        return int(w), int(h)
+    return None
+
+
+def _bmp_size(data: bytes) -> tuple[int, int] | None:
+    if len(data) >= 26:
+        w, h = struct.unpack("<ii", data[18:26])
+        return abs(int(w)), abs(int(h))
+    return None
+
+
+_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
+
+
+def _jpeg_size(data: bytes) -> tuple[int, int] | None:
+    i, n = 2, len(data)
+    while i + 4 <= n:
+        if data[i] != 0xFF:
+            return None
+        marker = data[i + 1]
+        if marker == 0xFF:  # fill byte
+            i += 1
+            continue
+        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
+            i += 2
+            continue
+        (length,) = struct.unpack(">H", data[i + 2:i + 4])
+        if marker in _SOF and i + 9 <= n:
+            h, w = struct.unpack(">HH", data[i + 5:i + 9])
+            return int(w), int(h)
+        i += 2 + length
+    return None
+
+
+def _tiff_size(data: bytes) -> tuple[int, int] | None:
+    endian = "<" if data[:2] == b"II" else ">"
+    if len(data) < 8:
+        return None
+    (ifd,) = struct.unpack(endian + "I", data[4:8])
+    if ifd + 2 > len(data):
+        return None
+    (count,) = struct.unpack(endian + "H", data[ifd:ifd + 2])
+    w = h = None
+    for k in range(min(count, 512)):
+        off = ifd + 2 + 12 * k
+        if off + 12 > len(data):
+            break
+        tag, typ = struct.unpack(endian + "HH", data[off:off + 4])
+        if tag in (256, 257):
+            value = (struct.unpack(endian + "H", data[off + 8:off + 10])[0] if typ == 3
+                     else struct.unpack(endian + "I", data[off + 8:off + 12])[0])
+            if tag == 256:
+                w = int(value)
+            else:
+                h = int(value)
+    return (w, h) if w is not None and h is not None else None
+
+
+def header_size(data: bytes, fmt: str) -> tuple[int, int] | None:
+    """(width, height) from the header, or None when the header does not say."""
+    parser = {"png": _png_size, "jpeg": _jpeg_size, "tiff": _tiff_size, "bmp": _bmp_size}[fmt]
+    try:
+        return parser(data)
+    except struct.error:
+        return None
+
+
+def decode_image(
+    data: bytes, field: str, max_pixels: int, allow_alpha_drop: bool = True
+) -> NDArray[Any]:
+    """Decode an uploaded image to (H, W) grey or (H, W, 3) RGB, uint8 or uint16.
+
+    Parameters
+    ----------
+    data : bytes
+        The file as uploaded.
+    field : str
+        Form field name, reported in errors.
+    max_pixels : int
+        Largest accepted width * height.
+    allow_alpha_drop : bool
+        Drop an alpha channel (True) rather than refusing the image.
+
+    Raises
+    ------
+    InvalidImageError
+        Not one of the accepted formats, undecodable, too many pixels, or an
+        unsupported sample type (e.g. 32-bit float TIFF).
+    """
+    if not data:
+        raise InvalidImageError("the image file is empty", field)
+    fmt = sniff_format(data)
+    if fmt is None:
+        raise InvalidImageError("not a PNG, JPEG, TIFF or BMP image", field)
+    size = header_size(data, fmt)
+    if size is not None:
+        w, h = size
+        if w <= 0 or h <= 0:
+            raise InvalidImageError(f"the {fmt} header gives an empty size {w}x{h}", field)
+        if w * h > max_pixels:
+            raise InvalidImageError(
+                f"image has {w}x{h} = {w * h} pixels, more than the limit {max_pixels}", field
+            )
+    buf = np.frombuffer(data, dtype=np.uint8)
+    try:
+        img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
+    except cv2.error as exc:
+        raise InvalidImageError(f"the {fmt} data cannot be decoded: {exc}", field) from exc
+    if img is None or img.size == 0:
+        raise InvalidImageError(f"the {fmt} data cannot be decoded", field)
+    if img.shape[0] * img.shape[1] > max_pixels:
+        raise InvalidImageError(
+            f"image has {img.shape[1]}x{img.shape[0]} pixels, more than the limit {max_pixels}",
+            field,
+        )
+    if img.dtype not in (np.uint8, np.uint16):
+        raise InvalidImageError(
+            f"samples of type {img.dtype} are not supported (8 or 16 bit only)", field
+        )
+    if img.ndim == 3:
+        channels = img.shape[2]
+        if channels == 1:
+            img = img[:, :, 0]
+        elif channels == 3:
+            img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+        elif channels == 4 and allow_alpha_drop:
+            img = cv2.cvtColor(img, cv2.COLOR_BGRA2RGB)
+        else:
+            raise InvalidImageError(f"{channels} colour channels are not supported", field)
+    return np.ascontiguousarray(img)
+
+
+def encode_png(image: NDArray[np.uint8]) -> bytes:
+    """PNG bytes of an (H, W) grey or (H, W, 3) RGB uint8 image."""
+    bgr = cv2.cvtColor(image, cv2.COLOR_RGB2BGR) if image.ndim == 3 else image
+    ok, buf = cv2.imencode(".png", bgr)
+    if not ok:
+        raise InvalidImageError("could not encode the overlay as PNG", "overlay")
+    return bytes(buf.tobytes())

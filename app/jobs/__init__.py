@@ -1,0 +1,1 @@
+"""Background jobs: the runner interface, the embedded process runner, the tasks."""

@@ -1,0 +1,81 @@
+"""The learning tasks the service queues (job kinds ``learn_mesh``, ``learn_images``).
+
+Each reads the object's verified upload from the store, calls the engine and
+returns the model; :func:`app.jobs.execute.execute_job` stores it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from model_store import JobRecord, ModelStore
+from model_store.files import decode_arrays
+from viewloc_core.camera import Camera
+from viewloc_core.errors import InvalidInputError
+
+
+def camera_from_meta(meta: dict[str, Any]) -> Camera:
+    """Camera from the JSON-able dict the upload routes store."""
+    return Camera(
+        float(meta["fx"]), float(meta["fy"]), float(meta["cx"]), float(meta["cy"]),
+        int(meta["width"]), int(meta["height"]),
+        tuple(float(c) for c in meta.get("dist") or ()),
+    )
+
+
+def learn_mesh(
+    store: ModelStore,
+    job: JobRecord,
+    progress: Callable[[str, float], None],
+    should_stop: Callable[[], bool],
+) -> Any:
+    """Learn an object model from its uploaded mesh (paper §4.1)."""
+    from viewloc_core.learn import LearningConfig, learn_from_mesh
+    from viewloc_core.mesh import load_mesh
+
+    data, record = store.read_upload(job.object_id)
+    meta = record.upload_meta
+    progress("loading mesh", 0.0)
+    mesh = load_mesh(data, str(meta["file_type"]), str(meta["units"]))
+    config = LearningConfig.from_dict(dict(meta.get("learning") or {}))
+    return learn_from_mesh(
+        mesh, config, progress=progress, rng=int(meta.get("seed", 0)), should_stop=should_stop
+    )
+
+
+def learn_images(
+    store: ModelStore,
+    job: JobRecord,
+    progress: Callable[[str, float], None],
+    should_stop: Callable[[], bool],
+) -> Any:
+    """Learn an object model from real images with known viewing angles (paper §4.1)."""
+    from viewloc_core.learn import LearningConfig, TrainingView, learn_from_images
+
+    data, record = store.read_upload(job.object_id)
+    meta = record.upload_meta
+    arrays = decode_arrays(data, "stored image set")
+    n = int(meta["count"])
+    images = [arrays[f"image_{i:04d}"] for i in range(n)]
+    masks: list[np.ndarray] | None = None
+    if meta.get("has_masks"):
+        masks = [arrays[f"mask_{i:04d}"] for i in range(n)]
+    views = [
+        TrainingView(
+            azimuth_deg=float(v["azimuth_deg"]),
+            polar_deg=float(v["polar_deg"]),
+            distance_mm=float(v["distance_mm"]),
+            inplane_deg=float(v.get("inplane_deg", 0.0)),
+        )
+        for v in meta["views"]
+    ]
+    if len(views) != n:
+        raise InvalidInputError("stored views do not match the stored images", "views")
+    config = LearningConfig.from_dict(dict(meta.get("learning") or {}))
+    return learn_from_images(
+        images, masks, camera_from_meta(meta["camera"]), views, float(meta["diameter_mm"]),
+        config, progress=progress, rng=int(meta.get("seed", 0)), should_stop=should_stop,
+    )

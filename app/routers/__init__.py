@@ -1,0 +1,1 @@
+"""Thin routers: parse, validate, call one store or core function, serialise."""

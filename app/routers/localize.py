@@ -1,0 +1,207 @@
+"""Localization: one object (``/v1/objects/{id}/localize``) or several (``/v1/localize``).
+
+Plain ``def`` endpoints: FastAPI runs them in its thread pool, so the
+CPU-heavy core never blocks the event loop.
+"""
+
+from __future__ import annotations
+
+import base64
+import dataclasses
+import time
+from typing import Annotated, Any
+
+import numpy as np
+from fastapi import APIRouter, Depends, File, Form, Path, Query, UploadFile
+
+from app.deps import MetricsDep, SettingsDep, StoreDep, require_multipart
+from app.imaging import decode_image, encode_png
+from app.openapi_doc import errors
+from app.problems import ProblemError
+from app.routers.common import parse_json_field, read_limited
+from app.schemas import (
+    CameraIn,
+    LocalizationOut,
+    LocalizeOptionsIn,
+    MultiLocalizationOut,
+    MultiLocalizeOptionsIn,
+)
+from app.serialize import detection_dict
+from model_store import ModelStore, ObjectNotReadyError, is_valid_id
+from model_store.errors import ObjectNotFoundError
+from viewloc_core.camera import Camera
+from viewloc_core.detection import Detection
+from viewloc_core.errors import InvalidCameraError
+
+router = APIRouter(tags=["localization"])
+
+ImageFile = Annotated[UploadFile, File(description="Scene image: PNG, JPEG, TIFF or BMP.")]
+CameraField = Annotated[
+    str,
+    Form(description='JSON Camera: {"fx", "fy", "cx", "cy", "dist": [k1, k2, p1, p2, k3]}'),
+]
+Overlay = Annotated[
+    bool,
+    Query(description="Also return the scene with each detection drawn, as base64 PNG in "
+                      "`overlay_png_base64`."),
+]
+
+
+def _camera(text: str, width: int, height: int) -> Camera:
+    cam = parse_json_field(text, CameraIn, "camera")
+    if (cam.width is not None and cam.width != width) or (
+        cam.height is not None and cam.height != height
+    ):
+        raise ProblemError(422, "camera size does not match the image", "validation",
+                           [("camera", f"the image is {width}x{height}")])
+    try:
+        return Camera(cam.fx, cam.fy, cam.cx, cam.cy, width, height, tuple(cam.dist or ()))
+    except InvalidCameraError as exc:
+        field = f"camera.{exc.field}" if exc.field else "camera"
+        raise ProblemError(422, exc.message, "validation", [(field, exc.message)]) from exc
+
+
+def _decode(image: UploadFile, settings: Any, timing: dict[str, float]) -> np.ndarray:
+    t = time.perf_counter()
+    data = read_limited(image, settings.max_image_bytes, "image")
+    img = decode_image(data, "image", settings.max_image_pixels)
+    timing["decode"] = (time.perf_counter() - t) * 1000
+    return img
+
+
+def _ready_model(store: ModelStore, object_id: str) -> Any:
+    record = store.get_object(object_id)
+    if record.state != "ready":
+        raise ObjectNotReadyError(
+            f"object {object_id} is {record.state}, not ready"
+            + (f": {record.error}" if record.error else ""),
+            "object_id",
+        )
+    return store.load_model(object_id)
+
+
+def _run(model: Any, img: np.ndarray, camera: Camera, opts: LocalizeOptionsIn,
+         metrics: Any) -> tuple[list[Detection], dict[str, float]]:
+    from viewloc_core.localize import LocalizeOptions, localize
+
+    t = time.perf_counter()
+    result = localize(model, img, camera, LocalizeOptions(
+        max_detections=opts.max_detections, min_score=opts.min_score, refine=opts.refine))
+    metrics.localize_seconds.observe(time.perf_counter() - t)
+    return list(result.detections), {str(k): float(v) for k, v in result.timing_ms.items()}
+
+
+def _overlay(img: np.ndarray, items: list[tuple[Any, list[Detection]]], camera: Camera) -> str:
+    from viewloc_core.overlay import draw_detections, to_rgb8
+
+    canvas = to_rgb8(img)
+    for model, dets in items:
+        canvas = draw_detections(canvas, dets, camera, getattr(model, "mesh_vertices_mm", None),
+                                 getattr(model, "mesh_faces", None))
+    return base64.b64encode(encode_png(canvas)).decode("ascii")
+
+
+@router.post(
+    "/v1/objects/{object_id}/localize",
+    response_model=LocalizationOut,
+    response_model_exclude_none=False,
+    dependencies=[Depends(require_multipart)],
+    responses=errors(404, 409, 413, 415, 422, 503),
+    summary="Localize one object in an image (6D pose)",
+)
+def localize_object(
+    object_id: Annotated[str, Path(description="Object id (32 hex digits).")],
+    image: ImageFile,
+    camera: CameraField,
+    store: StoreDep,
+    settings: SettingsDep,
+    metrics: MetricsDep,
+    options: Annotated[
+        str | None,
+        Form(description='JSON: {"max_detections": 1, "min_score": null, "refine": true}'),
+    ] = None,
+    overlay: Overlay = False,
+) -> dict[str, Any]:
+    """Find the object; no detection above ``min_score`` answers ``"detections": []``."""
+    t0 = time.perf_counter()
+    timing: dict[str, float] = {}
+    opts = parse_json_field(options, LocalizeOptionsIn, "options")
+    model = _ready_model(store, object_id)
+    img = _decode(image, settings, timing)
+    cam = _camera(camera, img.shape[1], img.shape[0])
+    dets, core_timing = _run(model, img, cam, opts, metrics)
+    core_total = core_timing.pop("total", None)
+    timing.update(core_timing)
+    if core_total is not None:
+        timing["localize"] = core_total
+    out: dict[str, Any] = {
+        "object_id": object_id,
+        "image": {"width": int(img.shape[1]), "height": int(img.shape[0])},
+        "detections": [detection_dict(d) for d in dets],
+    }
+    if overlay:
+        t = time.perf_counter()
+        out["overlay_png_base64"] = _overlay(img, [(model, dets)], cam)
+        timing["overlay"] = (time.perf_counter() - t) * 1000
+    timing["total"] = (time.perf_counter() - t0) * 1000
+    out["timing_ms"] = timing
+    return out
+
+
+@router.post(
+    "/v1/localize",
+    response_model=MultiLocalizationOut,
+    dependencies=[Depends(require_multipart)],
+    responses=errors(404, 409, 413, 415, 422, 503),
+    summary="Localize several (default: all ready) objects in one image",
+)
+def localize_many(
+    image: ImageFile,
+    camera: CameraField,
+    store: StoreDep,
+    settings: SettingsDep,
+    metrics: MetricsDep,
+    options: Annotated[
+        str | None,
+        Form(description='JSON: {"object_ids": [...], "max_detections": 1, "min_score": null, '
+                         '"refine": true}'),
+    ] = None,
+    overlay: Overlay = False,
+) -> dict[str, Any]:
+    """Each detection carries its ``object_id``; best score first."""
+    t0 = time.perf_counter()
+    timing: dict[str, float] = {}
+    opts = parse_json_field(options, MultiLocalizeOptionsIn, "options")
+    if opts.object_ids is None:
+        ids = [o.object_id for o in store.list_objects(state="ready")]
+    else:
+        ids = list(dict.fromkeys(opts.object_ids))
+        for i, oid in enumerate(ids):
+            if not is_valid_id(oid):
+                raise ObjectNotFoundError(f"no object {oid!r}", f"options.object_ids[{i}]")
+    models = [(oid, _ready_model(store, oid)) for oid in ids]
+    img = _decode(image, settings, timing)
+    cam = _camera(camera, img.shape[1], img.shape[0])
+    all_dets: list[Detection] = []
+    drawn: list[tuple[Any, list[Detection]]] = []
+    localize_ms = 0.0
+    for oid, model in models:
+        dets, core_timing = _run(model, img, cam, opts, metrics)
+        localize_ms += core_timing.get("total", 0.0)
+        dets = [dataclasses.replace(d, object_id=oid) for d in dets]
+        drawn.append((model, dets))
+        all_dets.extend(dets)
+    all_dets.sort(key=lambda d: -d.score)
+    timing["localize"] = localize_ms
+    out: dict[str, Any] = {
+        "object_ids": ids,
+        "image": {"width": int(img.shape[1]), "height": int(img.shape[0])},
+        "detections": [detection_dict(d) for d in all_dets],
+    }
+    if overlay:
+        t = time.perf_counter()
+        out["overlay_png_base64"] = _overlay(img, drawn, cam)
+        timing["overlay"] = (time.perf_counter() - t) * 1000
+    timing["total"] = (time.perf_counter() - t0) * 1000
+    out["timing_ms"] = timing
+    return out

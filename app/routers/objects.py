@@ -1,0 +1,235 @@
+"""``/v1/objects``: learn from a mesh or from images, list, get, delete."""
+
+from __future__ import annotations
+
+from pathlib import PurePath
+from typing import Annotated, Any
+
+import numpy as np
+from fastapi import APIRouter, Depends, File, Form, Path, Response, UploadFile
+
+from app.deps import RunnerDep, SettingsDep, StoreDep, require_multipart
+from app.imaging import decode_image
+from app.openapi_doc import errors
+from app.problems import ProblemError
+from app.routers.common import check_learning_spec, parse_json_field, read_limited
+from app.schemas import ImagesSpec, MeshSpec, ObjectCreated, ObjectList, ObjectOut
+from app.serialize import job_dict, object_dict
+from model_store.files import encode_arrays
+from viewloc_core.camera import Camera
+from viewloc_core.errors import InvalidCameraError
+
+router = APIRouter(prefix="/v1/objects", tags=["objects"])
+
+ObjectId = Annotated[str, Path(description="Object id (32 hex digits).")]
+
+_MESH_TYPES = ("stl", "obj", "ply", "off", "glb", "gltf")
+
+
+def mesh_file_type(filename: str | None, data: bytes) -> str:
+    """Mesh format from the upload's file name suffix, else from magic bytes.
+
+    The file name is used for nothing else (never as a path).
+    """
+    suffix = PurePath(filename or "").suffix.lower().lstrip(".")
+    if suffix in _MESH_TYPES:
+        return suffix
+    head = data[:512]
+    if head.startswith(b"glTF"):
+        return "glb"
+    if head.startswith(b"ply"):
+        return "ply"
+    if head.lstrip().startswith(b"OFF"):
+        return "off"
+    if head.lstrip().startswith(b"{") and b'"asset"' in data[:4096]:
+        return "gltf"
+    if head.lstrip().startswith(b"solid") or (
+        len(data) >= 84 and 84 + 50 * int.from_bytes(data[80:84], "little") == len(data)
+    ):
+        return "stl"
+    raise ProblemError(
+        422, "cannot tell the mesh format: name the file with a suffix "
+        ".stl, .obj, .ply, .off, .glb or .gltf", "validation",
+        [("mesh", "unknown mesh format")],
+    )
+
+
+def _created(store_obj: Any, store_job: Any, response: Response) -> dict[str, Any]:
+    response.headers["Location"] = f"/v1/jobs/{store_job.job_id}"
+    return {"object": object_dict(store_obj), "job": job_dict(store_job)}
+
+
+@router.post(
+    "",
+    status_code=202,
+    response_model=ObjectCreated,
+    dependencies=[Depends(require_multipart)],
+    responses=errors(413, 415, 422, 503),
+    summary="Learn an object from a CAD mesh",
+)
+def create_object(
+    mesh: Annotated[UploadFile, File(description="STL, OBJ, PLY, OFF, GLB or glTF file.")],
+    store: StoreDep,
+    runner: RunnerDep,
+    settings: SettingsDep,
+    response: Response,
+    spec: Annotated[
+        str | None,
+        Form(description='JSON: {"name": str, "units": "mm"|"cm"|"m"|"in", "learning": {...}}'),
+    ] = None,
+) -> dict[str, Any]:
+    """Store the mesh and queue a learning job. Answers 202 with ``Location: /v1/jobs/{id}``."""
+    parsed = parse_json_field(spec, MeshSpec, "spec")
+    data = read_limited(mesh, settings.max_mesh_bytes, "mesh")
+    if not data:
+        raise ProblemError(422, "the mesh file is empty", "validation", [("mesh", "empty file")])
+    file_type = mesh_file_type(mesh.filename, data)
+    check_learning_spec(parsed.learning)
+    from viewloc_core.mesh import load_mesh
+
+    # Parse now so a corrupt mesh is a 422 here, not a failed job later.
+    loaded = load_mesh(data, file_type, parsed.units)
+    name = parsed.name or PurePath(mesh.filename or "object").stem[:200]
+    from viewloc_core.mesh import mesh_diameter_mm
+
+    obj, job = store.create_object(
+        name=name,
+        source="mesh",
+        kind="learn_mesh",
+        upload=data,
+        upload_suffix="bin",
+        upload_meta={
+            "file_type": file_type,
+            "units": parsed.units,
+            "learning": parsed.learning or {},
+        },
+        diameter_mm=float(mesh_diameter_mm(loaded)),
+    )
+    runner.submit(job)
+    return _created(obj, job, response)
+
+
+@router.post(
+    "/from-images",
+    status_code=202,
+    response_model=ObjectCreated,
+    dependencies=[Depends(require_multipart)],
+    responses=errors(413, 415, 422, 503),
+    summary="Learn an object from real images with known viewing angles",
+)
+def create_object_from_images(
+    images: Annotated[
+        list[UploadFile], File(description="PNG, JPEG, TIFF or BMP; 8/16-bit; grey or colour.")
+    ],
+    spec: Annotated[
+        str,
+        Form(description='JSON: {"name", "camera": Camera, "object_diameter_mm", '
+             '"views": [{"azimuth_deg", "polar_deg", "distance_mm", "inplane_deg"}, ...]}'),
+    ],
+    store: StoreDep,
+    runner: RunnerDep,
+    settings: SettingsDep,
+    response: Response,
+    masks: Annotated[
+        list[UploadFile] | None,
+        File(description="Optional, one per image, same size; non-zero = object."),
+    ] = None,
+) -> dict[str, Any]:
+    """Store the decoded images and queue a learning job (paper's real-image path)."""
+    if len(images) > settings.max_images:
+        raise ProblemError(
+            413, f"{len(images)} images, more than the limit of {settings.max_images}",
+            "too-large", [("images", f"at most {settings.max_images} images")],
+        )
+    parsed = parse_json_field(spec, ImagesSpec, "spec")
+    masks = masks or []
+    problems: list[tuple[str, str]] = []
+    if len(parsed.views) != len(images):
+        problems.append(("spec.views", f"{len(parsed.views)} views for {len(images)} images"))
+    if masks and len(masks) != len(images):
+        problems.append(("masks", f"{len(masks)} masks for {len(images)} images"))
+    if problems:
+        raise ProblemError(422, "the counts of images, masks and views differ", "validation",
+                           problems)
+    check_learning_spec(parsed.learning)
+    arrays: dict[str, np.ndarray] = {}
+    size: tuple[int, int] | None = None
+    for i, upload in enumerate(images):
+        field = f"images[{i}]"
+        img = decode_image(read_limited(upload, settings.max_image_bytes, field), field,
+                           settings.max_image_pixels)
+        if size is None:
+            size = (img.shape[1], img.shape[0])
+        elif (img.shape[1], img.shape[0]) != size:
+            raise ProblemError(422, "all images must have the same size (one camera)",
+                               "validation", [(field, f"size {img.shape[1]}x{img.shape[0]}, "
+                                               f"expected {size[0]}x{size[1]}")])
+        arrays[f"image_{i:04d}"] = img
+    for i, upload in enumerate(masks):
+        field = f"masks[{i}]"
+        m = decode_image(read_limited(upload, settings.max_image_bytes, field), field,
+                         settings.max_image_pixels)
+        if (m.shape[1], m.shape[0]) != size:
+            raise ProblemError(422, "each mask must have the size of its image", "validation",
+                               [(field, f"size {m.shape[1]}x{m.shape[0]}, expected "
+                                 f"{size[0]}x{size[1]}" if size else "bad size")])
+        arrays[f"mask_{i:04d}"] = (m.reshape(m.shape[0], m.shape[1], -1).max(axis=2) > 0).astype(
+            np.uint8)
+    assert size is not None  # FastAPI requires at least one image
+    cam = parsed.camera
+    if (cam.width is not None and cam.width != size[0]) or (
+        cam.height is not None and cam.height != size[1]
+    ):
+        raise ProblemError(422, "camera size does not match the images", "validation",
+                           [("spec.camera", f"images are {size[0]}x{size[1]}")])
+    camera_meta = {
+        "fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy,
+        "dist": list(cam.dist or []), "width": size[0], "height": size[1],
+    }
+    try:
+        Camera(cam.fx, cam.fy, cam.cx, cam.cy, size[0], size[1], tuple(cam.dist or ()))
+    except InvalidCameraError as exc:
+        raise ProblemError(422, exc.message, "validation",
+                           [(f"spec.camera.{exc.field or ''}".rstrip("."), exc.message)]) from exc
+    obj, job = store.create_object(
+        name=parsed.name or "object",
+        source="images",
+        kind="learn_images",
+        upload=encode_arrays(arrays),
+        upload_suffix="npz",
+        upload_meta={
+            "count": len(images),
+            "has_masks": bool(masks),
+            "camera": camera_meta,
+            "views": [v.model_dump() for v in parsed.views],
+            "diameter_mm": parsed.object_diameter_mm,
+            "learning": parsed.learning or {},
+        },
+        diameter_mm=parsed.object_diameter_mm,
+        training_views=len(images),
+    )
+    runner.submit(job)
+    return _created(obj, job, response)
+
+
+@router.get("", response_model=ObjectList, responses=errors(503), summary="List objects")
+def list_objects(store: StoreDep) -> dict[str, Any]:
+    """All objects, oldest first."""
+    return {"objects": [object_dict(o) for o in store.list_objects()]}
+
+
+@router.get("/{object_id}", response_model=ObjectOut, responses=errors(404, 503),
+            summary="Get an object")
+def get_object(object_id: ObjectId, store: StoreDep) -> dict[str, Any]:
+    """One object's metadata and state."""
+    return object_dict(store.get_object(object_id))
+
+
+@router.delete("/{object_id}", status_code=204, responses=errors(404, 503),
+               summary="Delete an object (cancels its running job)")
+def delete_object(object_id: ObjectId, store: StoreDep, runner: RunnerDep) -> Response:
+    """Remove the object, its files and model; a running learning job is cancelled."""
+    running = store.delete_object(object_id)
+    if running is not None:
+        runner.cancel(running.job_id)
+    return Response(status_code=204)

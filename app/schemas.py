@@ -1,0 +1,217 @@
+"""Pydantic models of the HTTP contract (API.md). Pydantic lives only in ``app``."""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+
+
+class _In(BaseModel):
+    """Inputs: unknown keys are errors, so a typo never silently means a default."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+# -- problems --------------------------------------------------------------
+class FieldError(BaseModel):
+    """One field-level validation problem."""
+
+    field: str = Field(description="Dotted name of the input, e.g. 'camera.fx'.")
+    message: str
+
+
+class Problem(BaseModel):
+    """RFC 9457 problem details (media type application/problem+json)."""
+
+    type: str
+    title: str
+    status: int
+    detail: str
+    errors: list[FieldError] | None = Field(
+        default=None, description="Field-level problems, for validation errors."
+    )
+
+
+# -- inputs given as JSON text in multipart forms ---------------------------
+class CameraIn(_In):
+    """Pinhole intrinsics in pixels (OpenCV convention); the size comes from the image."""
+
+    fx: FiniteFloat = Field(gt=0, description="Focal length x, pixels.")
+    fy: FiniteFloat = Field(gt=0, description="Focal length y, pixels.")
+    cx: FiniteFloat = Field(description="Principal point x, pixels.")
+    cy: FiniteFloat = Field(description="Principal point y, pixels.")
+    dist: list[FiniteFloat] | None = Field(
+        default=None, description="OpenCV distortion [k1, k2, p1, p2(, k3(, k4, k5, k6))]."
+    )
+    width: int | None = Field(default=None, gt=0, description="Optional; must match the image.")
+    height: int | None = Field(default=None, gt=0, description="Optional; must match the image.")
+
+
+class MeshSpec(_In):
+    """The ``spec`` form field of ``POST /v1/objects``."""
+
+    name: str = Field(default="", max_length=200)
+    units: Literal["mm", "cm", "m", "in"] = "mm"
+    learning: dict[str, object] | None = Field(
+        default=None, description="Optional tuning of the learning (LearningConfig fields)."
+    )
+
+
+class ViewIn(_In):
+    """Known viewing angles of one training image."""
+
+    azimuth_deg: FiniteFloat
+    polar_deg: FiniteFloat = Field(ge=0, le=180)
+    distance_mm: FiniteFloat = Field(gt=0)
+    inplane_deg: FiniteFloat = 0.0
+
+
+class ImagesSpec(_In):
+    """The ``spec`` form field of ``POST /v1/objects/from-images``."""
+
+    name: str = Field(default="", max_length=200)
+    camera: CameraIn
+    object_diameter_mm: FiniteFloat = Field(gt=0)
+    views: list[ViewIn] = Field(min_length=1)
+    learning: dict[str, object] | None = None
+
+
+class LocalizeOptionsIn(_In):
+    """The ``options`` form field of localization."""
+
+    max_detections: int = Field(default=1, ge=1, le=100)
+    min_score: FiniteFloat | None = Field(default=None, ge=0, le=1)
+    refine: bool = True
+
+
+class MultiLocalizeOptionsIn(LocalizeOptionsIn):
+    """Options of ``POST /v1/localize``: which objects (default all ready ones)."""
+
+    object_ids: list[str] | None = Field(default=None, max_length=1000)
+
+
+# -- outputs ---------------------------------------------------------------
+class ObjectOut(BaseModel):
+    """An object (API.md ``Object``)."""
+
+    object_id: str
+    name: str
+    state: Literal["learning", "ready", "failed"]
+    source: Literal["mesh", "images"]
+    diameter_mm: float
+    training_views: int
+    model_views: int
+    created_at: str = Field(description="RFC 3339 UTC.")
+    job_id: str
+    error: str | None = Field(default=None, description="Why the object is failed, if it is.")
+
+
+class JobOut(BaseModel):
+    """A background learning job (API.md ``Job``)."""
+
+    job_id: str
+    object_id: str
+    state: Literal["queued", "running", "succeeded", "failed", "cancelled"]
+    progress: float = Field(ge=0, le=1)
+    stage: str
+    error: str | None
+    created_at: str
+    started_at: str | None
+    finished_at: str | None
+
+
+class ObjectCreated(BaseModel):
+    """Answer of the learning uploads."""
+
+    object: ObjectOut
+    job: JobOut
+
+
+class ObjectList(BaseModel):
+    """Answer of ``GET /v1/objects``."""
+
+    objects: list[ObjectOut]
+
+
+class ViewOut(BaseModel):
+    """Viewing angles of the matched training view."""
+
+    azimuth_deg: float
+    polar_deg: float
+
+
+class SimilarityOut(BaseModel):
+    """The 2D match r = (x, y, α, s) of paper §4.2."""
+
+    x: float
+    y: float
+    angle_deg: float
+    scale: float
+
+
+class PoseOut(BaseModel):
+    """Object -> camera pose, mm; x_cam = R x_obj + t."""
+
+    R: list[list[float]] = Field(min_length=3, max_length=3)
+    t_mm: list[float] = Field(min_length=3, max_length=3)
+    quaternion_wxyz: list[float] = Field(min_length=4, max_length=4)
+    euler_xyz_deg: list[float] = Field(min_length=3, max_length=3)
+
+
+class DetectionOut(BaseModel):
+    """One localized instance."""
+
+    score: float = Field(ge=0, le=1)
+    log_probability: float
+    model_view: int
+    view: ViewOut
+    similarity: SimilarityOut
+    pose: PoseOut
+    refined: bool
+    pose_std: list[float] | None = Field(
+        default=None,
+        description="Std. dev. of the refined pose: rot x,y,z (deg), trans x,y,z (mm).",
+    )
+    object_id: str | None = Field(
+        default=None, description="Set when several objects were searched."
+    )
+
+
+class ImageSize(BaseModel):
+    """Size of the scene image in pixels."""
+
+    width: int
+    height: int
+
+
+class LocalizationOut(BaseModel):
+    """Answer of ``POST /v1/objects/{object_id}/localize``."""
+
+    object_id: str
+    image: ImageSize
+    detections: list[DetectionOut]
+    timing_ms: dict[str, float] = Field(description="Has 'decode' and 'total', ms.")
+    overlay_png_base64: str | None = Field(default=None,
+        description="With ?overlay=true: the scene as PNG (base64) with each detection's "
+        "projected model contour and axes (x red, y green, z blue) drawn.",
+    )
+
+
+class MultiLocalizationOut(BaseModel):
+    """Answer of ``POST /v1/localize``."""
+
+    object_ids: list[str] = Field(description="The objects that were searched.")
+    image: ImageSize
+    detections: list[DetectionOut]
+    timing_ms: dict[str, float]
+    overlay_png_base64: str | None = None
+
+
+class Health(BaseModel):
+    """Answer of the health probes."""
+
+    status: str
+    checks: dict[str, bool] | None = None

@@ -1,0 +1,76 @@
+"""A real uvicorn server on a free loopback port, per test, with its own store."""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pytest
+import uvicorn
+
+from app.main import create_app
+from app.settings import Settings
+
+TEST_TASKS = {
+    "sleepy": "tests.app.job_funcs:sleepy",
+    "crash": "tests.app.job_funcs:crash",
+    "bad_input": "tests.app.job_funcs:bad_input",
+    "stubborn": "tests.app.job_funcs:stubborn",
+}
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@dataclass
+class LiveServer:
+    url: str
+    app: Any
+    server: uvicorn.Server
+    thread: threading.Thread
+
+    def stop(self) -> None:
+        self.server.should_exit = True
+        self.thread.join(20)
+
+
+def start_server(settings: Settings, tasks: dict[str, str] | None = None) -> LiveServer:
+    app = create_app(settings, tasks=tasks)
+    port = free_port()
+    config = uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning",
+                            lifespan="on")
+    server = uvicorn.Server(config)
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 20
+    while not server.started:
+        if time.monotonic() > deadline or not thread.is_alive():
+            raise RuntimeError("uvicorn did not start")
+        time.sleep(0.02)
+    return LiveServer(f"http://127.0.0.1:{port}", app, server, thread)
+
+
+@pytest.fixture
+def make_server(tmp_path: Path) -> Iterator[Callable[..., LiveServer]]:
+    """Start servers on tmp_path/var (same root for every call: restarts share it)."""
+    started: list[LiveServer] = []
+
+    def make(tasks: dict[str, str] | None = None, **overrides: Any) -> LiveServer:
+        values: dict[str, Any] = {"data_dir": tmp_path / "var", "log_json": True,
+                                  "job_stale_after_s": 5.0, "job_cancel_grace_s": 1.0}
+        values.update(overrides)
+        srv = start_server(Settings(**values), tasks)
+        started.append(srv)
+        return srv
+
+    yield make
+    for srv in started:
+        srv.stop()
