@@ -43,3 +43,7 @@ class InvalidCameraError(InvalidInputError):
 
 class ModelFormatError(ViewlocError):
     """A stored model file is corrupt or has an unknown schema version."""
+
+
+class Cancelled(ViewlocError):
+    """A long computation was asked to stop (``should_stop()`` returned True)."""

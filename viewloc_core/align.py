@@ -1,0 +1,556 @@
+"""Probabilistic alignment of model views to an image (Pope & Lowe 2000; DESIGN.md §2 step 6).
+
+1. *Pairings.* Every image feature is paired with the model features of the
+   same kind whose attributes are likely under the model's attribute density;
+   each pairing is ranked by ``log p_j + log f_j(a_k) − log f_bg(a_k)``.
+2. *Seeds.* A junction or parallel-pair pairing fixes a whole similarity
+   ``(x, y, α, s)``. Seeds vote in a coarse (view, x, y, α, s) table so the
+   consistent ones are tried first, not merely the individually likeliest.
+3. *Verification.* Each hypothesis is checked against the image's spread
+   orientation map with the model view's dense edge samples (LINE-2D's trick,
+   cheap enough to test dozens of seeds).
+4. *Extension.* The best hypotheses are extended greedily: model edge samples
+   pair with image edges under the current similarity and the similarity is
+   re-fitted by weighted least squares (point-to-line), shrinking the gate.
+5. *Quality.* ``g(E, T) ≈ log P(H | E, T)`` over the feature pairings E
+   (matched terms, unmatched ``log(1 − p_j)``, Gaussian position term times
+   the image area for the uniform background), and the fraction of dense edge
+   samples confirmed by the image (the ``coverage``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+from viewloc_core import similarity as sim2
+from viewloc_core.features import (
+    KIND_JUNCTION,
+    KIND_PARALLEL,
+    ImageFeatures,
+    orientation_bin,
+)
+from viewloc_core.model import ModelView, ObjectModel
+
+F64 = NDArray[np.float64]
+
+#: Attribute standard deviations per feature kind (junction: opening angle rad,
+#: log arm ratio; parallel pair: log overlap/separation, unused).
+ATTR_SIGMA = {KIND_JUNCTION: np.array([0.12, 0.7]), KIND_PARALLEL: np.array([0.5, 1e3])}
+
+
+@dataclass(frozen=True, slots=True)
+class AlignConfig:
+    """Tuning of the alignment search.
+
+    Attributes
+    ----------
+    min_scale, max_scale : float
+        Range of image scale relative to the training views.
+    attr_gate : float
+        Pairings further than this many attribute sigmas are not formed.
+    vote_xy_px, vote_angle_deg, vote_log2_scale : float
+        Bin sizes of the seed voting table.
+    max_bins : int
+        Vote bins turned into hypotheses.
+    max_scored : int
+        Hypotheses (by quick coverage) whose g is computed.
+    max_hypotheses : int
+        Hypotheses extended on all edge samples after ranking by g.
+    min_coverage : float
+        Hypotheses whose quick coverage is below this are dropped early.
+    icp_radii_px : tuple of float
+        Pairing gates of the successive extension steps (fine edge samples).
+    coarse_radii_px : tuple of float
+        The same for the quick extension of every voted hypothesis.
+    coverage_weight : float
+        Hypotheses are ranked by ``g + coverage_weight * coverage``: g decides,
+        coverage breaks near-ties in favour of complete outlines.
+    orientation_tol_deg : float
+        Largest orientation difference of paired edge samples.
+    """
+
+    min_scale: float = 0.3
+    max_scale: float = 3.0
+    attr_gate: float = 2.5
+    vote_xy_px: float = 12.0
+    vote_angle_deg: float = 20.0
+    vote_log2_scale: float = 0.35
+    max_bins: int = 80
+    max_scored: int = 16
+    max_hypotheses: int = 5
+    min_coverage: float = 0.25
+    icp_radii_px: tuple[float, ...] = (4.0, 2.5, 1.5)
+    coarse_radii_px: tuple[float, ...] = (8.0, 4.0)
+    coverage_weight: float = 20.0
+    orientation_tol_deg: float = 20.0
+
+
+@dataclass(frozen=True, slots=True)
+class Match2D:
+    """An aligned model view.
+
+    Attributes
+    ----------
+    model_view : int
+    sim : (4,) float64
+        Model-view frame -> image, ``(x, y, angle_rad, scale)``.
+    log_probability : float
+        g(E, T).
+    coverage : float
+        Fraction of the view's edge samples confirmed by image edges.
+    n_pairs : int
+        Number of feature pairings in E.
+    """
+
+    model_view: int
+    sim: F64
+    log_probability: float
+    coverage: float
+    n_pairs: int
+
+
+@dataclass(frozen=True, slots=True)
+class ModelIndex:
+    """Model features stacked over all views with attribute search trees."""
+
+    view_of: NDArray[np.int64]
+    kind: NDArray[np.int8]
+    xy: F64
+    theta: F64
+    scale: F64
+    attrs: F64
+    log_presence: F64
+    trees: dict[int, tuple[cKDTree, NDArray[np.int64]]]
+    coarse_pts: F64
+    coarse_bins: NDArray[np.int64]
+    coarse_valid: NDArray[np.bool_]
+    fine_edges: list[tuple[F64, F64]]
+    view_radius_px: float
+
+
+def build_index(model: ObjectModel, coarse_points: int = 48) -> ModelIndex:
+    """Precompute the pairing trees and edge subsets of a model (once per model)."""
+    views = model.model_views
+    view_of = np.concatenate([np.full(len(v.kind), i, np.int64) for i, v in enumerate(views)])
+    kind = np.concatenate([v.kind for v in views])
+    xy = np.concatenate([v.xy for v in views]).astype(np.float64)
+    theta = np.concatenate([v.theta for v in views]).astype(np.float64)
+    scale = np.concatenate([v.scale for v in views]).astype(np.float64)
+    attrs = np.concatenate([v.attrs for v in views]).astype(np.float64)
+    log_presence = np.log(np.concatenate([v.presence for v in views]).astype(np.float64))
+    trees = {}
+    for k, sigma in ATTR_SIGMA.items():
+        idx = np.flatnonzero(kind == k)
+        if len(idx):
+            trees[k] = (cKDTree(attrs[idx] / sigma), idx)
+    rng = np.random.default_rng(0)
+    # Coarse edge subsets padded to one length so hypotheses batch together.
+    coarse_pts = np.zeros((len(views), coarse_points, 2))
+    coarse_bins = np.zeros((len(views), coarse_points), np.int64)
+    coarse_valid = np.zeros((len(views), coarse_points), bool)
+    fine = []
+    for i, v in enumerate(views):
+        exy = v.edge_xy.astype(np.float64)
+        eth = v.edge_theta.astype(np.float64)
+        fine.append((exy, eth))
+        pick = _spread_subset(exy, coarse_points, rng)
+        coarse_pts[i, : len(pick)] = exy[pick]
+        coarse_bins[i, : len(pick)] = orientation_bin(eth[pick])
+        coarse_valid[i, : len(pick)] = True
+    radius = model.f_train_px * model.diameter_mm / model.d0_mm / 2.0
+    return ModelIndex(
+        view_of, kind, xy, theta, scale, attrs, log_presence, trees,
+        coarse_pts, coarse_bins, coarse_valid, fine, radius,
+    )
+
+
+def _spread_subset(pts: F64, n: int, rng: np.random.Generator) -> NDArray[np.int64]:
+    """Indices of up to ``n`` points spread over the set (farthest-point sampling)."""
+    if len(pts) <= n:
+        return np.arange(len(pts))
+    chosen = [int(rng.integers(len(pts)))]
+    dist = np.linalg.norm(pts - pts[chosen[0]], axis=1)
+    for _ in range(n - 1):
+        nxt = int(np.argmax(dist))
+        chosen.append(nxt)
+        dist = np.minimum(dist, np.linalg.norm(pts - pts[nxt], axis=1))
+    return np.array(chosen, np.int64)
+
+
+def _log_background_density(kind: int, attrs: F64) -> F64:
+    """log f_bg(a): attribute density of clutter features.
+
+    Junction opening angles are about uniform over the accepted range and arm
+    ratios about log-normal; parallel-pair overlap ratios about log-normal.
+    """
+    if kind == KIND_JUNCTION:
+        span = np.pi - 2 * np.radians(25.0)
+        return -np.log(span) - 0.5 * (attrs[:, 1] / 1.2) ** 2 - np.log(1.2 * np.sqrt(2 * np.pi))
+    return -0.5 * ((attrs[:, 0] - 1.0) / 1.0) ** 2 - np.log(np.sqrt(2 * np.pi))
+
+
+def _pairings(index: ModelIndex, feats: ImageFeatures, config: AlignConfig) -> tuple[
+    NDArray[np.int64], NDArray[np.int64], F64
+]:
+    """All plausible (image feature, model feature) pairings and their log weight."""
+    g = feats.grouped
+    ks_all, js_all, ws_all = [], [], []
+    for k, (tree, model_idx) in index.trees.items():
+        img_idx = np.flatnonzero(g.kind == k)
+        if len(img_idx) == 0:
+            continue
+        sigma = ATTR_SIGMA[k]
+        img_attrs = g.attrs[img_idx].astype(np.float64)
+        img_tree = cKDTree(img_attrs / sigma)
+        pairs = img_tree.sparse_distance_matrix(tree, config.attr_gate, output_type="ndarray")
+        if len(pairs) == 0:
+            continue
+        ki = img_idx[pairs["i"]]
+        mj = model_idx[pairs["j"]]
+        d2 = pairs["v"] ** 2
+        active = sigma < 100
+        log_f = -0.5 * d2 - float(np.sum(np.log(sigma[active] * np.sqrt(2 * np.pi))))
+        w = index.log_presence[mj] + log_f - _log_background_density(k, img_attrs[pairs["i"]])
+        ks_all.append(ki)
+        js_all.append(mj)
+        ws_all.append(w)
+    if not ks_all:
+        empty = np.zeros(0, np.int64)
+        return empty, empty, np.zeros(0)
+    return np.concatenate(ks_all), np.concatenate(js_all), np.concatenate(ws_all)
+
+
+def _seeds(index: ModelIndex, feats: ImageFeatures, k: NDArray[np.int64], j: NDArray[np.int64],
+           config: AlignConfig) -> tuple[F64, NDArray[np.int64], NDArray[np.bool_]]:
+    """Similarity (N, 4) implied by each pairing; parallel pairs give two (α, α+π)."""
+    g = feats.grouped
+    angle = g.theta[k].astype(np.float64) - index.theta[j]
+    scale = g.scale[k].astype(np.float64) / index.scale[j]
+    parallel = index.kind[j] == KIND_PARALLEL
+    # A parallel pair's orientation is only known modulo π.
+    k = np.concatenate([k, k[parallel]])
+    j = np.concatenate([j, j[parallel]])
+    angle = np.concatenate([angle, angle[parallel] + np.pi])
+    scale = np.concatenate([scale, scale[parallel]])
+    c, s = scale * np.cos(angle), scale * np.sin(angle)
+    mx, my = index.xy[j, 0], index.xy[j, 1]
+    ix, iy = g.xy[k, 0].astype(np.float64), g.xy[k, 1].astype(np.float64)
+    tx = ix - (c * mx - s * my)
+    ty = iy - (s * mx + c * my)
+    sims = np.stack([tx, ty, sim2.wrap_angle(angle), scale], axis=1)
+    ok = (scale >= config.min_scale) & (scale <= config.max_scale)
+    return sims, j, ok
+
+
+def coverage(
+    feats: ImageFeatures, sim: F64, pts: F64, bins: NDArray[np.int64]
+) -> float:
+    """Fraction of edge samples that land on an image edge of similar orientation.
+
+    Parameters
+    ----------
+    feats : ImageFeatures
+        Image with its spread orientation map.
+    sim : (4,) array
+        Model frame -> image.
+    pts : (P, 2) array
+        Edge samples, model frame.
+    bins : (P,) int
+        Their orientation bins (model frame).
+
+    Returns
+    -------
+    float in [0, 1]; samples outside the image count as missing.
+    """
+    if len(pts) == 0:
+        return 0.0
+    uv = sim2.apply(sim, pts)
+    h, w = feats.shape
+    u = np.rint(uv[:, 0]).astype(np.int64)
+    v = np.rint(uv[:, 1]).astype(np.int64)
+    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    shift = int(np.floor(np.mod(sim[2], np.pi) / np.pi * 16 + 0.5))
+    b = (bins + shift) % 16
+    # Accept the bin and its two neighbours (±1 bin = ±11.25°).
+    want = (1 << b) | (1 << ((b + 1) % 16)) | (1 << ((b - 1) % 16))
+    got = np.zeros(len(pts), np.uint16)
+    got[inside] = feats.orientation_bits[v[inside], u[inside]]
+    return float(np.count_nonzero(got & want.astype(np.uint16)) / len(pts))
+
+
+def extend(
+    feats: ImageFeatures, sim: F64, pts: F64, theta: F64, config: AlignConfig
+) -> F64:
+    """Greedy extension: pair edge samples under ``sim`` and re-fit, shrinking the gate.
+
+    Parameters
+    ----------
+    feats : ImageFeatures
+    sim : (4,) array
+        Initial model -> image similarity.
+    pts : (P, 2) array
+        Model edge samples.
+    theta : (P,) array
+        Their orientations modulo π.
+    config : AlignConfig
+
+    Returns
+    -------
+    (4,) float64
+        The re-fitted similarity (the input when the fit degenerates).
+    """
+    if len(feats.edge_xy) < 4 or len(pts) < 4:
+        return sim
+    tol = np.radians(config.orientation_tol_deg)
+    current = np.asarray(sim, dtype=np.float64)
+    for radius in config.icp_radii_px:
+        uv = sim2.apply(current, pts)
+        ok, nn = feats.nearest_edges(uv, radius)
+        if ok.sum() < 6:
+            break
+        nn = nn[ok]
+        dth = np.abs(np.mod(theta[ok] + current[2] - feats.edge_theta[nn], np.pi))
+        dth = np.minimum(dth, np.pi - dth)
+        good = dth < tol
+        if good.sum() < 6:
+            break
+        img_theta = feats.edge_theta[nn[good]].astype(np.float64)
+        normals = np.stack([-np.sin(img_theta), np.cos(img_theta)], axis=1)
+        src = pts[ok][good]
+        dst = feats.edge_xy[nn[good]].astype(np.float64)
+        resid = np.abs(((sim2.apply(current, src) - dst) * normals).sum(axis=1))
+        # Huber weights: far pairings are likely clutter.
+        huber = np.where(resid <= 1.0, 1.0, 1.0 / np.maximum(resid, 1e-9))
+        fitted = sim2.fit_point_to_line(src, dst, normals, huber)
+        if fitted is None or not np.all(np.isfinite(fitted)):
+            break
+        if not (0.5 * current[3] < fitted[3] < 2.0 * current[3]):
+            break
+        current = fitted
+    return current
+
+
+def _coverage_many(feats: ImageFeatures, sims: F64, pts: F64, bins: NDArray[np.int64],
+                   valid: NDArray[np.bool_]) -> F64:
+    """``coverage`` for H hypotheses at once; pts (H, P, 2), bins/valid (H, P)."""
+    uv = _apply_batch(sims, pts)
+    h, w = feats.shape
+    u = np.rint(uv[..., 0]).astype(np.int64)
+    v = np.rint(uv[..., 1]).astype(np.int64)
+    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h) & valid
+    shift = np.floor(np.mod(sims[:, 2], np.pi) / np.pi * 16 + 0.5).astype(np.int64)
+    b = (bins + shift[:, None]) % 16
+    want = (1 << b) | (1 << ((b + 1) % 16)) | (1 << ((b - 1) % 16))
+    got = np.zeros(u.shape, np.int64)
+    got[inside] = feats.orientation_bits[v[inside], u[inside]]
+    hit = (got & want) != 0
+    return hit.sum(axis=1) / np.maximum(valid.sum(axis=1), 1)
+
+
+def _apply_batch(sims: F64, pts: F64) -> F64:
+    """Map (H, P, 2) points, each row by its own similarity of (H, 4)."""
+    c = (sims[:, 3] * np.cos(sims[:, 2]))[:, None]
+    s = (sims[:, 3] * np.sin(sims[:, 2]))[:, None]
+    px, py = pts[..., 0], pts[..., 1]
+    return np.stack([c * px - s * py + sims[:, 0:1], s * px + c * py + sims[:, 1:2]], axis=-1)
+
+
+def _extend_many(feats: ImageFeatures, sims: F64, pts: F64, theta: F64,
+                 valid: NDArray[np.bool_], radii: tuple[float, ...], tol_deg: float) -> F64:
+    """``extend`` for H hypotheses at once (batched normal equations)."""
+    if len(feats.edge_xy) == 0:
+        return sims
+    current = sims.copy()
+    tol = np.radians(tol_deg)
+    hh, pp = theta.shape
+    for radius in radii:
+        uv = _apply_batch(current, pts)
+        found, nn = feats.nearest_edges(uv.reshape(-1, 2), radius)
+        found = found.reshape(hh, pp) & valid
+        nn = nn.reshape(hh, pp)
+        img_theta = feats.edge_theta[nn].astype(np.float64)
+        dth = np.abs(np.mod(theta + current[:, 2:3] - img_theta, np.pi))
+        dth = np.minimum(dth, np.pi - dth)
+        use = found & (dth < tol)
+        wgt = use.astype(np.float64)
+        nx, ny = -np.sin(img_theta), np.cos(img_theta)
+        dst = feats.edge_xy[nn].astype(np.float64)
+        sx, sy = pts[..., 0], pts[..., 1]
+        A = np.stack([nx * sx + ny * sy, -nx * sy + ny * sx, nx, ny], axis=-1)
+        rhs = nx * dst[..., 0] + ny * dst[..., 1]
+        AtA = np.einsum("hpi,hpj,hp->hij", A, A, wgt)
+        Atb = np.einsum("hpi,hp,hp->hi", A, rhs, wgt)
+        ok = use.sum(axis=1) >= 6
+        AtA[~ok] = np.eye(4)
+        det = np.linalg.det(AtA)
+        ok &= np.abs(det) > 1e-9
+        AtA[~ok] = np.eye(4)
+        sol = np.linalg.solve(AtA, Atb[..., None])[..., 0]
+        scale = np.hypot(sol[:, 0], sol[:, 1])
+        ok &= (scale > 0.5 * current[:, 3]) & (scale < 2.0 * current[:, 3])
+        new = np.stack([sol[:, 2], sol[:, 3], np.arctan2(sol[:, 1], sol[:, 0]), scale], axis=1)
+        current[ok] = new[ok]
+    return current
+
+
+def log_probability(view_data: ModelView, feats: ImageFeatures, sim: F64) -> tuple[float, int]:
+    """g(E, T) of a hypothesis, pairing model features to image features under T.
+
+    Each model feature pairs with the image feature of its kind that adds the
+    most to g (if that beats leaving it unmatched); all pairings are evaluated
+    at once as a (model features x image features) table.
+
+    Returns
+    -------
+    g : float
+        ``Σ_unmatched log(1 − p_j) + Σ_pairs [log p_j + log f_j/f_bg
+        + log N(b_k; T μ_j, T Σ_j Tᵀ) + log A]`` (the prior log P(H) is the
+        same for every hypothesis and left out).
+    n_pairs : int
+    """
+    g = feats.grouped
+    area = float(feats.shape[0] * feats.shape[1])
+    p = np.minimum(view_data.presence.astype(np.float64), 0.999)
+    log_miss = np.log1p(-p)
+    total = float(np.sum(log_miss))
+    if len(view_data.kind) == 0 or len(g) == 0:
+        return total, 0
+    mu = sim2.apply(sim, view_data.xy.astype(np.float64))
+    var = float(sim[3]) ** 2 * view_data.pos_var.astype(np.float64) + 1.0
+    gxy = g.xy.astype(np.float64)
+    d2 = ((mu[:, None, :] - gxy[None, :, :]) ** 2).sum(axis=2)
+    near = d2 <= 9.0 * var[:, None]
+    same = view_data.kind[:, None] == g.kind[None, :]
+    cand = near & same
+    if not cand.any():
+        return total, 0
+    jj, kk = np.nonzero(cand)
+    kind = view_data.kind[jj]
+    period = np.where(kind == KIND_PARALLEL, np.pi, 2 * np.pi)
+    dth = np.abs(
+        np.mod(g.theta[kk] - view_data.theta[jj] - sim[2] + period / 2, period) - period / 2
+    )
+    term = np.full(len(jj), -np.inf)
+    ok = dth <= np.radians(25.0)
+    for k, sigma in ATTR_SIGMA.items():
+        sel = ok & (kind == k)
+        if not sel.any():
+            continue
+        active = sigma < 100
+        da = (g.attrs[kk[sel]].astype(np.float64) - view_data.attrs[jj[sel]]) / sigma
+        log_f = -0.5 * (da[:, active] ** 2).sum(axis=1) - float(
+            np.sum(np.log(sigma[active] * np.sqrt(2 * np.pi)))
+        )
+        log_bg = _log_background_density(k, g.attrs[kk[sel]].astype(np.float64))
+        v = var[jj[sel]]
+        log_pos = -0.5 * d2[jj[sel], kk[sel]] / v - np.log(2 * np.pi * v)
+        term[sel] = np.log(p[jj[sel]]) + log_f - log_bg + log_pos + np.log(area)
+    gain = term - log_miss[jj]
+    best = np.full(len(p), 0.0)
+    np.maximum.at(best, jj, gain)
+    paired = best > 0
+    return total + float(best[paired].sum()), int(paired.sum())
+
+
+def align(
+    model: ObjectModel,
+    index: ModelIndex,
+    feats: ImageFeatures,
+    config: AlignConfig = AlignConfig(),
+    max_matches: int = 5,
+) -> list[Match2D]:
+    """Find model views in an image.
+
+    Parameters
+    ----------
+    model : ObjectModel
+    index : ModelIndex
+        ``build_index(model)``.
+    feats : ImageFeatures
+        Features of the image.
+    config : AlignConfig
+    max_matches : int
+        Most matches returned (distinct image locations).
+
+    Returns
+    -------
+    list of Match2D
+        Best first by coverage, then g; empty when nothing plausible is found.
+    """
+    k, j, w = _pairings(index, feats, config)
+    if len(k) == 0:
+        return []
+    sims, j2, ok = _seeds(index, feats, k, j, config)
+    w2 = np.concatenate([w, w[index.kind[j] == KIND_PARALLEL]])
+    sims, j2, w2 = sims[ok], j2[ok], w2[ok]
+    if len(sims) == 0:
+        return []
+    views = index.view_of[j2]
+    # Vote: consistent seeds accumulate; a seed's vote is its positive log odds.
+    # One int64 key per bin (each field offset to be non-negative and < 2^12).
+    fields = [
+        np.floor(sims[:, 0] / config.vote_xy_px).astype(np.int64) + 2048,
+        np.floor(sims[:, 1] / config.vote_xy_px).astype(np.int64) + 2048,
+        np.floor((sims[:, 2] + np.pi) / np.radians(config.vote_angle_deg)).astype(np.int64),
+        np.floor(np.log2(sims[:, 3]) / config.vote_log2_scale).astype(np.int64) + 2048,
+    ]
+    key = views.astype(np.int64)
+    for f in fields:
+        key = key * 4096 + np.clip(f, 0, 4095)
+    uniq_key, inv = np.unique(key, return_inverse=True)
+    uniq_view = uniq_key // (4096**4)
+    votes = np.bincount(inv, weights=np.maximum(w2, 0.0) + 0.5)
+    top_bins = np.argsort(-votes)[: config.max_bins]
+    hyp_views = np.empty(len(top_bins), np.int64)
+    hyp_sims = np.empty((len(top_bins), 4))
+    for n, b in enumerate(top_bins):
+        members = np.flatnonzero(inv == b)
+        hyp_views[n] = uniq_view[b]
+        hyp_sims[n] = sims[members[np.argmax(w2[members])]]
+    # Quick extension of every voted hypothesis on its view's coarse edge
+    # subset, all at once, so that seeds a few pixels off are judged after,
+    # not before, they snap in.
+    pts = index.coarse_pts[hyp_views]
+    bins = index.coarse_bins[hyp_views]
+    valid = index.coarse_valid[hyp_views]
+    theta_c = np.asarray((bins + 0.5) * (np.pi / 16), dtype=np.float64)
+    fitted_all = _extend_many(feats, hyp_sims, pts, theta_c, valid, config.coarse_radii_px,
+                              config.orientation_tol_deg)
+    cov_all = _coverage_many(feats, fitted_all, pts, bins, valid)
+    order = np.argsort(-cov_all)[: config.max_scored]
+    scored = []
+    for n in order:
+        if cov_all[n] < config.min_coverage:
+            break
+        view = int(hyp_views[n])
+        gval, _ = log_probability(model.model_views[view], feats, fitted_all[n])
+        scored.append((gval + config.coverage_weight * cov_all[n], view, fitted_all[n]))
+    scored.sort(key=lambda item: -item[0])
+    matches: list[Match2D] = []
+    for _, view, sim in scored[: config.max_hypotheses]:
+        pts, theta = index.fine_edges[view]
+        fitted = extend(feats, sim, pts, theta, config)
+        cov = coverage(feats, fitted, pts, orientation_bin(theta))
+        gval, n_pairs = log_probability(model.model_views[view], feats, fitted)
+        matches.append(Match2D(view, fitted, gval, cov, n_pairs))
+    # Pope & Lowe rank by g; coverage alone prefers small views that match
+    # a part of the object (one plate of a barbell) perfectly.
+    matches.sort(key=lambda m: -(m.log_probability + config.coverage_weight * m.coverage))
+    return suppress_duplicates(matches, index.view_radius_px, max_matches)
+
+
+def suppress_duplicates(matches: list[Match2D], view_radius_px: float,
+                        max_matches: int) -> list[Match2D]:
+    """Non-maximum suppression: keep the best match per image location."""
+    kept: list[Match2D] = []
+    for m in matches:
+        radius = 0.5 * view_radius_px * m.sim[3]
+        if all(np.hypot(*(m.sim[:2] - o.sim[:2])) > radius for o in kept):
+            kept.append(m)
+        if len(kept) >= max_matches:
+            break
+    return kept

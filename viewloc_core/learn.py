@@ -1,0 +1,641 @@
+"""Learning a view-based object model (paper §3, §4.1; DESIGN.md §2 steps 1-5).
+
+Training views come from either source:
+
+- a mesh, rendered coarse to fine over the view sphere with varied lighting;
+- real images with known viewing angles, distance and intrinsics (the paper's
+  coffee-machine path), warped into the canonical training camera.
+
+Each training view is then clustered incrementally (Pope & Lowe 2000): it is
+aligned to the existing model views that could explain it and joins the one
+that lowers the description length (model bits + data bits, MDL) most, or
+founds a new model view. Generation stops when a whole subdivision level adds
+no model view (§4.1's stopping criterion).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, fields
+from typing import Any
+
+import cv2
+import numpy as np
+import trimesh
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+from viewloc_core import similarity as sim2
+from viewloc_core.align import AlignConfig, _spread_subset, align, build_index, coverage
+from viewloc_core.camera import Camera
+from viewloc_core.errors import Cancelled, InvalidInputError
+from viewloc_core.features import (
+    KIND_PARALLEL,
+    FeatureConfig,
+    ImageFeatures,
+    extract_features,
+    orientation_bin,
+)
+from viewloc_core.model import ModelView, ObjectModel, TrainingViews
+from viewloc_core.view_sphere import direction_from_angles, view_directions, view_rotation
+
+ProgressFn = Callable[[str, float], None]
+StopFn = Callable[[], bool]
+
+#: Bits to code one grouped feature from scratch: position (2 x 7 bits at
+#: 1 px), orientation (6), scale (5), attributes (2 x 5).
+BITS_NEW_FEATURE = 35.0
+#: Bits to code one grouped feature as a small residual of a model feature.
+BITS_MATCHED_FEATURE = 8.0
+#: Bits to code one edge sample from scratch / as explained by the model.
+BITS_NEW_EDGE = 18.0
+BITS_EXPLAINED_EDGE = 2.0
+#: Bits for the similarity that maps a training view into a model view.
+BITS_TRANSFORM = 48.0
+
+
+@dataclass(frozen=True, slots=True)
+class LearningConfig:
+    """How an object is learned.
+
+    Attributes
+    ----------
+    max_level : int
+        Finest view-sphere subdivision level (0: 12 views ... 3: 642 views).
+    min_level : int
+        Levels always generated before the stopping criterion applies.
+    max_polar_deg : float
+        Only views with polar angle <= this (180 = whole sphere, 90 = upper
+        hemisphere for parts lying on a table).
+    object_px : float
+        Object diameter in training-image pixels.
+    edge_samples : int
+        Dense edge samples kept per training view.
+    min_presence : float
+        Model features seen in fewer than this fraction of a cluster's views
+        are dropped once the cluster has ``prune_after`` members.
+    prune_after : int
+    candidates : int
+        Model views a training view is aligned to when clustering.
+    join_min_fit : float
+        A training view may join a model view only when at least this
+        fraction of its edge samples is explained by the model view and of
+        the model view's by it. MDL alone favours merging whenever anything
+        is shared; this keeps a model view specific enough to verify with.
+    seed : int
+        Seed of the lighting randomisation; learning is deterministic for it.
+    """
+
+    max_level: int = 2
+    min_level: int = 1
+    max_polar_deg: float = 180.0
+    object_px: float = 128.0
+    edge_samples: int = 160
+    min_presence: float = 0.25
+    prune_after: int = 4
+    candidates: int = 6
+    join_min_fit: float = 0.7
+    seed: int = 0
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any] | None) -> LearningConfig:
+        """Validated configuration from a JSON object (``spec.learning``).
+
+        Raises
+        ------
+        InvalidInputError
+            ``field="learning.<name>"`` for unknown keys or bad values.
+        """
+        data = dict(data or {})
+        known = {f.name: f for f in fields(cls)}
+        values: dict[str, Any] = {}
+        for key, value in data.items():
+            if key not in known:
+                raise InvalidInputError(f"unknown learning option {key!r}", f"learning.{key}")
+            default = getattr(cls(), key)
+            if isinstance(default, int) and not isinstance(default, bool):
+                if isinstance(value, bool) or not isinstance(value, int):
+                    raise InvalidInputError("must be an integer", f"learning.{key}")
+            elif isinstance(default, float):
+                if isinstance(value, bool) or not isinstance(value, int | float):
+                    raise InvalidInputError("must be a number", f"learning.{key}")
+                value = float(value)
+                if not math.isfinite(value):
+                    raise InvalidInputError("must be finite", f"learning.{key}")
+            values[key] = value
+        config = cls(**values)
+        config.validate()
+        return config
+
+    def validate(self) -> None:
+        """Raise InvalidInputError naming the first out-of-range option."""
+        checks = [
+            ("max_level", 0 <= self.max_level <= 4, "must be in 0..4"),
+            ("min_level", 0 <= self.min_level <= self.max_level, "must be in 0..max_level"),
+            ("max_polar_deg", 30.0 <= self.max_polar_deg <= 180.0, "must be in 30..180"),
+            ("object_px", 48.0 <= self.object_px <= 400.0, "must be in 48..400"),
+            ("edge_samples", 32 <= self.edge_samples <= 1000, "must be in 32..1000"),
+            ("min_presence", 0.0 <= self.min_presence < 1.0, "must be in [0, 1)"),
+            ("prune_after", 2 <= self.prune_after <= 100, "must be in 2..100"),
+            ("candidates", 1 <= self.candidates <= 50, "must be in 1..50"),
+            ("join_min_fit", 0.0 <= self.join_min_fit <= 1.0, "must be in [0, 1]"),
+            ("seed", 0 <= self.seed < 2**32, "must be in 0..2^32-1"),
+        ]
+        for name, ok, message in checks:
+            if not ok:
+                raise InvalidInputError(message, f"learning.{name}")
+
+
+@dataclass(frozen=True, slots=True)
+class TrainingView:
+    """Known viewpoint of one real training image (API: ``spec.views[i]``).
+
+    Attributes
+    ----------
+    azimuth_deg, polar_deg : float
+        Direction from the object origin to the camera (object frame).
+    distance_mm : float
+        Distance of the object origin from the camera; the origin is assumed
+        on the optical axis.
+    inplane_deg : float
+        Rotation of the camera about its optical axis relative to the fixed
+        up rule of ``view_sphere`` (positive turns the image content clockwise
+        on screen, like ``Similarity2D.angle_deg``).
+    """
+
+    azimuth_deg: float
+    polar_deg: float
+    distance_mm: float
+    inplane_deg: float = 0.0
+
+
+@dataclass(slots=True)
+class _Cluster:
+    """A model view while it is being learned (mutable)."""
+
+    kind: NDArray[np.int8]
+    xy: NDArray[np.float64]
+    theta: NDArray[np.float64]
+    scale: NDArray[np.float64]
+    attrs: NDArray[np.float64]
+    count: NDArray[np.float64]
+    pos_var: NDArray[np.float64]
+    n_members: int
+    edge_xy: NDArray[np.float64]
+    edge_theta: NDArray[np.float64]
+
+    def frozen(self) -> ModelView:
+        return ModelView(
+            self.kind.astype(np.int8), self.xy.astype(np.float32),
+            self.theta.astype(np.float32), self.scale.astype(np.float32),
+            self.attrs.astype(np.float32), self.count.astype(np.float32),
+            self.pos_var.astype(np.float32), self.n_members,
+            self.edge_xy.astype(np.float32), self.edge_theta.astype(np.float32),
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class _ViewSample:
+    """Features of one training view in canonical model-view coordinates."""
+
+    feats: ImageFeatures
+    kind: NDArray[np.int8]
+    xy: NDArray[np.float64]
+    theta: NDArray[np.float64]
+    scale: NDArray[np.float64]
+    attrs: NDArray[np.float64]
+    edge_xy: NDArray[np.float64]
+    edge_theta: NDArray[np.float64]
+
+
+def _canonical_camera(config: LearningConfig, diameter_mm: float) -> tuple[float, float, int]:
+    """(d0_mm, f_train_px, size_px) of the canonical training camera."""
+    # A distance of a few diameters keeps perspective mild, like the scenes.
+    d0 = 4.0 * diameter_mm
+    f = config.object_px * d0 / diameter_mm
+    size = int(math.ceil(config.object_px * 1.25 / 2.0) * 2)
+    return d0, f, size
+
+
+def _sample_from_image(
+    image: NDArray[np.generic], mask: NDArray[np.bool_] | None, centre: float,
+    config: LearningConfig, rng: np.random.Generator,
+) -> _ViewSample:
+    feats = extract_features(image, FeatureConfig(), mask=mask)
+    g = feats.grouped
+    offset = np.array([centre, centre])
+    pick = _spread_subset(feats.edge_xy.astype(np.float64), config.edge_samples, rng)
+    return _ViewSample(
+        feats,
+        g.kind,
+        g.xy.astype(np.float64) - offset,
+        g.theta.astype(np.float64),
+        g.scale.astype(np.float64),
+        g.attrs.astype(np.float64),
+        feats.edge_xy[pick].astype(np.float64) - offset,
+        feats.edge_theta[pick].astype(np.float64),
+    )
+
+
+def _new_cluster(sample: _ViewSample) -> _Cluster:
+    n = len(sample.kind)
+    return _Cluster(
+        sample.kind.copy(), sample.xy.copy(), sample.theta.copy(), sample.scale.copy(),
+        sample.attrs.copy(), np.ones(n), np.full(n, 2.0), 1,
+        sample.edge_xy.copy(), sample.edge_theta.copy(),
+    )
+
+
+def _pair_features(
+    cluster: _Cluster, sample: _ViewSample, sim_t2m: NDArray[np.float64], gate_px: float = 4.0
+) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]]:
+    """Pair cluster features with sample features under a similarity.
+
+    Returns cluster indices, sample indices and the sample positions mapped
+    into the cluster frame.
+    """
+    if len(cluster.kind) == 0 or len(sample.kind) == 0:
+        e = np.zeros(0, np.int64)
+        return e, e, np.zeros((0, 2))
+    mapped = sim2.apply(sim_t2m, sample.xy)
+    tree = cKDTree(mapped)
+    dist, nn = tree.query(cluster.xy, k=1, distance_upper_bound=gate_px)
+    ci, si = [], []
+    taken: set[int] = set()
+    for c in np.argsort(dist):
+        if not np.isfinite(dist[c]):
+            break
+        s = int(nn[c])
+        if s in taken or sample.kind[s] != cluster.kind[c]:
+            continue
+        period = np.pi if cluster.kind[c] == KIND_PARALLEL else 2 * np.pi
+        dth = np.mod(sample.theta[s] + sim_t2m[2] - cluster.theta[c] + period / 2, period)
+        if abs(dth - period / 2) > np.radians(20.0):
+            continue
+        taken.add(s)
+        ci.append(int(c))
+        si.append(s)
+    ci_a, si_a = np.array(ci, np.int64), np.array(si, np.int64)
+    return ci_a, si_a, mapped[si_a] if len(si_a) else np.zeros((0, 2))
+
+
+def _edges_explained(cluster: _Cluster, sample: _ViewSample,
+                     sim_t2m: NDArray[np.float64]) -> int:
+    """How many of the sample's edge samples the cluster's edges explain."""
+    if len(cluster.edge_xy) == 0 or len(sample.edge_xy) == 0:
+        return 0
+    mapped = sim2.apply(sim_t2m, sample.edge_xy)
+    dist, nn = cKDTree(cluster.edge_xy).query(mapped, k=1, distance_upper_bound=2.5)
+    ok = np.isfinite(dist)
+    dth = np.abs(np.mod(sample.edge_theta[ok] + sim_t2m[2] - cluster.edge_theta[nn[ok]], np.pi))
+    dth = np.minimum(dth, np.pi - dth)
+    return int(np.count_nonzero(dth < np.radians(20.0)))
+
+
+def _description_length_new(sample: _ViewSample) -> float:
+    """Bits to add a training view as a new model view."""
+    return len(sample.kind) * BITS_NEW_FEATURE + len(sample.edge_xy) * BITS_NEW_EDGE
+
+
+def _description_length_join(
+    cluster: _Cluster, sample: _ViewSample, n_matched: int, n_explained: int
+) -> float:
+    """Bits to code a training view with a model view (plus the model's growth)."""
+    p = (cluster.count + 0.5) / (cluster.n_members + 1.0)
+    unmatched_model = max(len(cluster.kind) - n_matched, 0)
+    # Model features the view lacks cost -log2(1 - p) each (on average).
+    missing_bits = unmatched_model * float(np.mean(-np.log2(np.maximum(1 - p, 1e-3)))) if len(
+        p) else 0.0
+    return (
+        BITS_TRANSFORM
+        + n_matched * BITS_MATCHED_FEATURE
+        + (len(sample.kind) - n_matched) * BITS_NEW_FEATURE
+        + n_explained * BITS_EXPLAINED_EDGE
+        + (len(sample.edge_xy) - n_explained) * BITS_NEW_EDGE
+        + missing_bits
+    )
+
+
+def _align_to_cluster(
+    cluster: _Cluster, sample: _ViewSample, config: AlignConfig
+) -> NDArray[np.float64] | None:
+    """Similarity cluster frame -> sample image pixels, or None if they do not align."""
+    model = _single_view_model(cluster)
+    matches = align(model, build_index(model), sample.feats, config, max_matches=1)
+    return matches[0].sim.copy() if matches else None
+
+
+def _single_view_model(cluster: _Cluster) -> ObjectModel:
+    mv = cluster.frozen()
+    training = TrainingViews(
+        np.eye(3)[None], np.zeros(1), np.zeros(1), np.zeros(1, np.int64),
+        np.array([[0.0, 0.0, 0.0, 1.0]]), [mv.edge_xy], [mv.edge_theta],
+    )
+    radius = float(np.max(np.linalg.norm(cluster.edge_xy, axis=1))) if len(
+        cluster.edge_xy) else 50.0
+    return ObjectModel("mesh", 2.0 * radius, 1.0, 1.0, 0, np.zeros(3), [mv], training)
+
+
+def _update_cluster(cluster: _Cluster, sample: _ViewSample, sim_t2m: NDArray[np.float64],
+                    config: LearningConfig) -> None:
+    ci, si, mapped = _pair_features(cluster, sample, sim_t2m)
+    n = cluster.n_members
+    if len(ci):
+        w_old = cluster.count[ci]
+        new_count = w_old + 1.0
+        delta = mapped - cluster.xy[ci]
+        cluster.xy[ci] += delta / new_count[:, None]
+        # Running variance (isotropic), floored so one view cannot make it 0.
+        sq = (delta**2).sum(axis=1) / 2.0
+        cluster.pos_var[ci] = np.maximum(
+            (cluster.pos_var[ci] * w_old + sq * w_old / new_count) / new_count, 1.0
+        )
+        period = np.where(cluster.kind[ci] == KIND_PARALLEL, np.pi, 2 * np.pi)
+        dth = np.mod(sample.theta[si] + sim_t2m[2] - cluster.theta[ci] + period / 2, period)
+        cluster.theta[ci] = np.mod(cluster.theta[ci] + (dth - period / 2) / new_count, period)
+        cluster.scale[ci] += (sample.scale[si] * sim_t2m[3] - cluster.scale[ci]) / new_count
+        cluster.attrs[ci] += (sample.attrs[si] - cluster.attrs[ci]) / new_count[:, None]
+        cluster.count[ci] = new_count
+    unmatched = np.setdiff1d(np.arange(len(sample.kind)), si)
+    if len(unmatched):
+        cluster.kind = np.concatenate([cluster.kind, sample.kind[unmatched]])
+        cluster.xy = np.concatenate([cluster.xy, sim2.apply(sim_t2m, sample.xy[unmatched])])
+        period = np.where(sample.kind[unmatched] == KIND_PARALLEL, np.pi, 2 * np.pi)
+        cluster.theta = np.concatenate(
+            [cluster.theta, np.mod(sample.theta[unmatched] + sim_t2m[2], period)]
+        )
+        cluster.scale = np.concatenate([cluster.scale, sample.scale[unmatched] * sim_t2m[3]])
+        cluster.attrs = np.concatenate([cluster.attrs, sample.attrs[unmatched]])
+        cluster.count = np.concatenate([cluster.count, np.ones(len(unmatched))])
+        cluster.pos_var = np.concatenate([cluster.pos_var, np.full(len(unmatched), 2.0)])
+    cluster.n_members = n + 1
+    if cluster.n_members >= config.prune_after:
+        keep = (cluster.count / cluster.n_members) >= config.min_presence
+        for name in ("kind", "xy", "theta", "scale", "attrs", "count", "pos_var"):
+            setattr(cluster, name, getattr(cluster, name)[keep])
+
+
+class _Clusterer:
+    """Incremental conceptual clustering of training views into model views."""
+
+    def __init__(self, config: LearningConfig, centre_px: float) -> None:
+        self.config = config
+        # Training images are square; their centre is the model-view origin.
+        self._centre = centre_px
+        self.align_config = AlignConfig(min_scale=0.8, max_scale=1.25, max_hypotheses=4)
+        self.clusters: list[_Cluster] = []
+        self.member_of: list[int] = []
+        self.sim_to_model: list[NDArray[np.float64]] = []
+        self.directions: list[NDArray[np.float64]] = []
+
+    def add(self, sample: _ViewSample, direction: NDArray[np.float64]) -> None:
+        best: tuple[float, int, NDArray[np.float64]] | None = None
+        dl_new = _description_length_new(sample)
+        for c in self._candidates(direction):
+            cluster = self.clusters[c]
+            sim_m2img = _align_to_cluster(cluster, sample, self.align_config)
+            if sim_m2img is None:
+                continue
+            # align() reports cluster frame -> sample image pixels; the sample's
+            # own frame is centred, so undo the centring before inverting.
+            sim_m2t = sim_m2img.copy()
+            sim_m2t[:2] -= self._centre
+            sim_t2m = sim2.inverse(sim_m2t)
+            ci, _, _ = _pair_features(cluster, sample, sim_t2m)
+            explained = _edges_explained(cluster, sample, sim_t2m)
+            fit_sample = explained / max(len(sample.edge_xy), 1)
+            fit_model = coverage(
+                sample.feats, sim_m2img, cluster.edge_xy, orientation_bin(cluster.edge_theta)
+            )
+            if min(fit_sample, fit_model) < self.config.join_min_fit:
+                continue
+            dl = _description_length_join(cluster, sample, len(ci), explained)
+            if dl < dl_new and (best is None or dl < best[0]):
+                best = (dl, c, sim_t2m)
+        if best is None:
+            self.clusters.append(_new_cluster(sample))
+            self.member_of.append(len(self.clusters) - 1)
+            self.sim_to_model.append(np.array([0.0, 0.0, 0.0, 1.0]))
+        else:
+            _, c, sim_t2m = best
+            _update_cluster(self.clusters[c], sample, sim_t2m, self.config)
+            self.member_of.append(c)
+            self.sim_to_model.append(sim_t2m)
+        self.directions.append(direction)
+
+    def _candidates(self, direction: NDArray[np.float64]) -> list[int]:
+        """Model views to try: those whose members look from the nearest directions."""
+        if not self.clusters:
+            return []
+        dirs = np.array(self.directions)
+        cos = dirs @ direction
+        order = np.argsort(-cos)
+        seen: list[int] = []
+        for t in order:
+            c = self.member_of[t]
+            if c not in seen:
+                seen.append(c)
+            if len(seen) >= self.config.candidates:
+                break
+        return seen
+
+
+def _check_should_stop(should_stop: StopFn | None) -> None:
+    if should_stop is not None and should_stop():
+        raise Cancelled("learning was cancelled")
+
+
+def _finish(
+    clusterer: _Clusterer, rotations: Sequence[NDArray[np.float64]],
+    samples: Sequence[_ViewSample], angles: Sequence[tuple[float, float]],
+    source: str, diameter_mm: float, d0: float, f: float, size: int,
+    origin_offset: NDArray[np.float64], config: LearningConfig,
+    mesh: trimesh.Trimesh | None,
+) -> ObjectModel:
+    training = TrainingViews(
+        np.array(rotations),
+        np.array([a for a, _ in angles]),
+        np.array([p for _, p in angles]),
+        np.array(clusterer.member_of, np.int64),
+        np.array(clusterer.sim_to_model),
+        [s.edge_xy.astype(np.float32) for s in samples],
+        [s.edge_theta.astype(np.float32) for s in samples],
+    )
+    return ObjectModel(
+        source=source,
+        diameter_mm=diameter_mm,
+        d0_mm=d0,
+        f_train_px=f,
+        train_size_px=size,
+        origin_offset_mm=origin_offset,
+        model_views=[c.frozen() for c in clusterer.clusters],
+        training=training,
+        mesh_vertices_mm=None if mesh is None else np.asarray(mesh.vertices, np.float32),
+        mesh_faces=None if mesh is None else np.asarray(mesh.faces, np.int32),
+        config=asdict(config),
+    )
+
+
+def learn_from_mesh(
+    mesh: trimesh.Trimesh,
+    config: LearningConfig = LearningConfig(),
+    progress: ProgressFn | None = None,
+    rng: np.random.Generator | int | None = None,
+    should_stop: StopFn | None = None,
+) -> ObjectModel:
+    """Learn a view-based model of a mesh (paper §4.1).
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh
+        The part, in mm (``mesh.load_mesh`` converts).
+    config : LearningConfig
+    progress : callable, optional
+        ``progress(stage, fraction)``; stage like ``"rendering view 12 of 162"``.
+    rng : Generator, int or None
+        Seed for the lighting; None uses ``config.seed``.
+    should_stop : callable, optional
+        Polled between views; True raises ``Cancelled``.
+
+    Returns
+    -------
+    ObjectModel
+    """
+    from viewloc_core.mesh import mesh_diameter_mm
+    from viewloc_core.render import Renderer, prepare, random_lights
+
+    config.validate()
+    gen = np.random.default_rng(config.seed if rng is None else rng)
+    centre = np.asarray(mesh.bounds, np.float64).mean(axis=0)
+    centred = mesh.copy()
+    centred.apply_translation(-centre)
+    diameter = mesh_diameter_mm(mesh)
+    d0, f, size = _canonical_camera(config, diameter)
+    c = (size - 1) / 2.0
+    camera = Camera(f, f, c, c, size, size)
+    directions = view_directions(config.max_level, config.max_polar_deg)
+    total = len(directions)
+    clusterer = _Clusterer(config, c)
+    rotations: list[NDArray[np.float64]] = []
+    samples: list[_ViewSample] = []
+    angles: list[tuple[float, float]] = []
+    from viewloc_core.pose import Pose
+
+    with Renderer() as renderer:
+        prepared = prepare(centred)
+        level_counts: dict[int, int] = {}
+        for i, view in enumerate(directions):
+            if view.level > config.min_level and view.level not in level_counts:
+                # A new level starts: stop when the previous one added nothing.
+                prev = level_counts.get(view.level - 1)
+                before = level_counts.get(view.level - 2)
+                if prev is not None and before is not None and prev <= before:
+                    break
+            _check_should_stop(should_stop)
+            if progress is not None:
+                progress(f"rendering view {i + 1} of {total}", i / total)
+            R = view.R_m2c
+            result = renderer.render(
+                prepared, camera, Pose(R, np.array([0.0, 0.0, d0])),
+                lights=random_lights(gen),
+            )
+            sample = _sample_from_image(result.color, result.mask, c, config, gen)
+            clusterer.add(sample, view.direction)
+            rotations.append(R)
+            samples.append(sample)
+            angles.append((view.azimuth_deg, view.polar_deg))
+            level_counts[view.level] = len(clusterer.clusters)
+    if progress is not None:
+        progress("finishing", 1.0)
+    return _finish(clusterer, rotations, samples, angles, "mesh", diameter, d0, f, size,
+                   centre, config, mesh)
+
+
+def learn_from_images(
+    images: Sequence[NDArray[np.generic]],
+    masks: Sequence[NDArray[np.generic] | None] | None,
+    camera: Camera,
+    views: Sequence[TrainingView],
+    diameter_mm: float,
+    config: LearningConfig = LearningConfig(),
+    progress: ProgressFn | None = None,
+    rng: np.random.Generator | int | None = None,
+    should_stop: StopFn | None = None,
+) -> ObjectModel:
+    """Learn from real images with known viewpoints (the paper's real-image path).
+
+    Each image is warped into the canonical training camera (scale from its
+    distance and focal length, in-plane rotation undone), so both sources give
+    identical model views.
+
+    Parameters
+    ----------
+    images : sequence of (H, W) or (H, W, 3) arrays
+    masks : sequence of (H, W) arrays or None, optional
+        Non-zero = object; same order as ``images``.
+    camera : Camera
+        Intrinsics of the training images.
+    views : sequence of TrainingView
+        One per image.
+    diameter_mm : float
+        Object diameter.
+    config, progress, rng, should_stop
+        As for ``learn_from_mesh``.
+
+    Returns
+    -------
+    ObjectModel
+    """
+    config.validate()
+    if len(images) == 0:
+        raise InvalidInputError("at least one image is needed", "images")
+    if len(views) != len(images):
+        raise InvalidInputError(
+            f"{len(views)} views for {len(images)} images", "spec.views"
+        )
+    if masks is not None and len(masks) != len(images):
+        raise InvalidInputError(f"{len(masks)} masks for {len(images)} images", "masks")
+    if not (math.isfinite(diameter_mm) and diameter_mm > 0):
+        raise InvalidInputError("must be a positive number", "spec.object_diameter_mm")
+    gen = np.random.default_rng(config.seed if rng is None else rng)
+    d0, f, size = _canonical_camera(config, diameter_mm)
+    c = (size - 1) / 2.0
+    clusterer = _Clusterer(config, c)
+    rotations, samples, angles = [], [], []
+    for i, (image, view) in enumerate(zip(images, views, strict=True)):
+        _check_should_stop(should_stop)
+        if progress is not None:
+            progress(f"image {i + 1} of {len(images)}", i / len(images))
+        if not (math.isfinite(view.distance_mm) and view.distance_mm > 0):
+            raise InvalidInputError("must be a positive number", f"spec.views[{i}].distance_mm")
+        img = np.asarray(image)
+        if img.shape[0] != camera.height or img.shape[1] != camera.width:
+            raise InvalidInputError(
+                f"image is {img.shape[1]}x{img.shape[0]}, camera says "
+                f"{camera.width}x{camera.height}", f"images[{i}]",
+            )
+        # Real image -> canonical: scale k, rotate by -inplane, origin to centre.
+        k = (f / d0) / (camera.focal_px / view.distance_mm)
+        a = -math.radians(view.inplane_deg)
+        A = k * np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+        pp = np.array([camera.cx, camera.cy])
+        M = np.hstack([A, (np.array([c, c]) - A @ pp)[:, None]])
+        warped = cv2.warpAffine(img, M, (size, size), flags=cv2.INTER_LINEAR)
+        mask_w = None
+        if masks is not None and masks[i] is not None:
+            m = np.asarray(masks[i])
+            if m.shape[:2] != img.shape[:2]:
+                raise InvalidInputError("mask size differs from its image", f"masks[{i}]")
+            mask_w = cv2.warpAffine((m > 0).astype(np.uint8), M, (size, size),
+                                    flags=cv2.INTER_NEAREST) > 0
+        sample = _sample_from_image(warped, mask_w, c, config, gen)
+        direction = direction_from_angles(view.azimuth_deg, view.polar_deg)
+        clusterer.add(sample, direction)
+        rotations.append(view_rotation(direction))
+        samples.append(sample)
+        angles.append((view.azimuth_deg, view.polar_deg))
+    if progress is not None:
+        progress("finishing", 1.0)
+    return _finish(clusterer, rotations, samples, angles, "images", diameter_mm, d0, f, size,
+                   np.zeros(3), config, None)
