@@ -1,0 +1,148 @@
+"""Mesh loading: every format round trips, units convert, bad files are refused."""
+
+import math
+
+import numpy as np
+import pytest
+import trimesh
+from trimesh.exchange.gltf import export_gltf
+
+from viewloc_core import mesh as mesh_module
+from viewloc_core.errors import InvalidInputError, InvalidMeshError
+from viewloc_core.mesh import (
+    load_mesh,
+    mesh_diameter_mm,
+    mesh_has_colour,
+    mesh_vertex_colours,
+)
+
+EXTENTS = (10.0, 20.0, 30.0)
+
+
+def _box(colour: tuple[int, int, int] | None = None) -> trimesh.Trimesh:
+    box = trimesh.creation.box(extents=EXTENTS)
+    box.apply_translation([1.0, 2.0, 3.0])
+    if colour is not None:
+        box.visual.vertex_colors = np.tile([*colour, 255], (len(box.vertices), 1))
+    return box
+
+
+def _export(mesh: trimesh.Trimesh | trimesh.Scene, file_type: str) -> bytes:
+    if file_type == "gltf":
+        scene = mesh if isinstance(mesh, trimesh.Scene) else trimesh.Scene(mesh)
+        # Buffers embedded as data URIs: bytes carry no sibling files.
+        return export_gltf(scene, embed_buffers=True)["model.gltf"]
+    data = mesh.export(file_type=file_type)
+    return data.encode() if isinstance(data, str) else data
+
+
+@pytest.mark.parametrize("file_type", ["stl", "obj", "ply", "off", "glb", "gltf"])
+def test_round_trip_keeps_extents(file_type):
+    loaded = load_mesh(_export(_box(), file_type), file_type=file_type)
+    np.testing.assert_allclose(np.sort(loaded.extents), EXTENTS, atol=1e-4)
+    np.testing.assert_allclose(loaded.bounds.mean(axis=0), [1.0, 2.0, 3.0], atol=1e-4)
+    assert len(loaded.faces) == 12
+    # STL stores each triangle's corners separately; they must be merged.
+    assert len(loaded.vertices) == 8
+
+
+@pytest.mark.parametrize(("units", "factor"), [("mm", 1.0), ("cm", 10.0), ("m", 1000.0),
+                                               ("in", 25.4)])
+def test_units_convert_to_mm(units, factor):
+    loaded = load_mesh(_export(_box(), "ply"), file_type="PLY", units=units)
+    np.testing.assert_allclose(np.sort(loaded.extents), np.array(EXTENTS) * factor, rtol=1e-9)
+
+
+def test_type_is_inferred_from_path_suffix(tmp_path):
+    path = tmp_path / "part.stl"
+    path.write_bytes(_export(_box(), "stl"))
+    loaded = load_mesh(path, units="cm")
+    np.testing.assert_allclose(np.sort(loaded.extents), np.array(EXTENTS) * 10.0, atol=1e-3)
+    assert load_mesh(str(path)).faces.shape == (12, 3)
+
+
+@pytest.mark.parametrize("file_type", ["ply", "glb"])
+def test_vertex_colours_survive(file_type):
+    loaded = load_mesh(_export(_box(colour=(200, 30, 10)), file_type), file_type=file_type)
+    assert mesh_has_colour(loaded)
+    colours = mesh_vertex_colours(loaded)
+    assert colours is not None
+    assert colours.dtype == np.uint8 and colours.shape == (len(loaded.vertices), 3)
+    np.testing.assert_array_equal(np.unique(colours, axis=0), [[200, 30, 10]])
+
+
+def test_scene_is_flattened_with_transforms_and_colours():
+    red = _box(colour=(255, 0, 0))
+    green = trimesh.creation.icosphere(subdivisions=1, radius=5.0)
+    green.visual.face_colors = np.tile([0, 255, 0, 255], (len(green.faces), 1))
+    scene = trimesh.Scene()
+    scene.add_geometry(red)
+    shift = np.eye(4)
+    shift[:3, 3] = [100.0, 0.0, 0.0]
+    scene.add_geometry(green, transform=shift)
+    loaded = load_mesh(_export(scene, "glb"), file_type="glb")
+    assert len(loaded.faces) == 12 + len(green.faces)
+    assert loaded.bounds[1, 0] == pytest.approx(105.0, abs=1e-3)
+    colours = mesh_vertex_colours(loaded)
+    assert colours is not None
+    present = {tuple(c) for c in np.unique(colours, axis=0)}
+    assert {(255, 0, 0), (0, 255, 0)} <= present
+
+
+def test_plain_mesh_has_no_colour():
+    loaded = load_mesh(_export(_box(), "stl"), file_type="stl")
+    assert not mesh_has_colour(loaded)
+    assert mesh_vertex_colours(loaded) is None
+
+
+def test_diameter_is_the_space_diagonal():
+    box = trimesh.creation.box(extents=EXTENTS)
+    assert mesh_diameter_mm(box) == pytest.approx(math.sqrt(10**2 + 20**2 + 30**2))
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=50.0)
+    assert mesh_diameter_mm(sphere) == pytest.approx(100.0, rel=1e-6)
+
+
+def _expect_mesh_error(data, file_type, fragment):
+    with pytest.raises(InvalidMeshError) as info:
+        load_mesh(data, file_type=file_type)
+    assert info.value.field == "mesh"
+    assert fragment in info.value.message.lower()
+
+
+@pytest.mark.parametrize("file_type", ["stl", "obj", "ply", "off", "glb", "gltf"])
+def test_garbage_bytes_are_refused(file_type):
+    with pytest.raises(InvalidMeshError) as info:
+        load_mesh(b"\x00\x17 this is not a mesh \xff" * 7, file_type=file_type)
+    assert info.value.field == "mesh"
+
+
+def test_empty_and_faceless_meshes_are_refused():
+    _expect_mesh_error(b"", "ply", "empty")
+    faceless = trimesh.Trimesh(vertices=np.eye(3), faces=np.zeros((0, 3), dtype=np.int64))
+    _expect_mesh_error(_export(faceless, "ply"), "ply", "no faces")
+
+
+def test_nan_vertices_are_refused():
+    box = _box()
+    vertices = box.vertices.copy()
+    vertices[3] = np.nan
+    bad = trimesh.Trimesh(vertices=vertices, faces=box.faces, process=False)
+    _expect_mesh_error(_export(bad, "ply"), "ply", "nan")
+
+
+def test_degenerate_and_absurd_meshes_are_refused(monkeypatch):
+    point = trimesh.Trimesh(vertices=np.ones((3, 3)), faces=[[0, 1, 2]], process=False)
+    _expect_mesh_error(_export(point, "ply"), "ply", "zero extent")
+    huge = trimesh.creation.box(extents=(200.0, 1.0, 1.0))
+    with pytest.raises(InvalidMeshError, match="limit"):
+        load_mesh(_export(huge, "ply"), file_type="ply", units="m")
+    monkeypatch.setattr(mesh_module, "MAX_FACES", 11)
+    _expect_mesh_error(_export(_box(), "ply"), "ply", "faces, more than")
+
+
+def test_unknown_type_and_units_name_their_field():
+    _expect_mesh_error(b"solid x", "dae", "unknown mesh type")
+    _expect_mesh_error(b"solid x", None, "file_type is required")
+    with pytest.raises(InvalidInputError) as info:
+        load_mesh(_export(_box(), "ply"), file_type="ply", units="furlong")
+    assert info.value.field == "units"

@@ -1,0 +1,242 @@
+"""Loading and checking object meshes (STL, OBJ, PLY, OFF, GLB, glTF).
+
+Every mesh leaving this module is one ``trimesh.Trimesh`` in millimetres with
+finite vertices, at least one face of non-zero area and a sane size. Scenes
+(GLB, glTF, multi-object OBJ) are flattened with their node transforms applied
+and their colours kept (vertex colours, face colours or a texture with UVs), so
+that LM-O's vertex-coloured PLY models render in colour.
+
+Parsing is done from memory (``trimesh.load`` on a ``BytesIO``): nothing is
+written, and nothing in the file is executed. A file given by path may pull in
+sibling assets it names (an OBJ's MTL and textures, a glTF's buffers) through
+trimesh's ``FilePathResolver``, which refuses paths outside the file's folder;
+bytes have no resolver, so their external references are simply missing.
+"""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import trimesh
+from numpy.typing import NDArray
+
+from viewloc_core.errors import InvalidInputError, InvalidMeshError
+
+#: Accepted ``file_type`` values (lower case, no dot).
+MESH_TYPES: frozenset[str] = frozenset({"stl", "obj", "ply", "off", "glb", "gltf"})
+
+#: Length of one unit in millimetres.
+UNIT_TO_MM: dict[str, float] = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4}
+
+#: Largest accepted face count; bigger meshes are not industrial parts but scans
+#: that would make every render and contour extraction slow.
+MAX_FACES = 2_000_000
+
+#: Largest accepted diameter in mm (after unit conversion).
+MAX_DIAMETER_MM = 100_000.0
+
+_FIELD = "mesh"
+
+
+def load_mesh(
+    data: bytes | str | Path,
+    file_type: str | None = None,
+    units: str = "mm",
+) -> trimesh.Trimesh:
+    """Parse a mesh file into one checked triangle mesh in millimetres.
+
+    Parameters
+    ----------
+    data : bytes, str or Path
+        The file contents (bytes), or a path to the file (str or Path).
+    file_type : str or None
+        One of :data:`MESH_TYPES` (case-insensitive, a leading dot is
+        ignored). ``None`` infers it from the path suffix; bytes need it.
+    units : str
+        Unit of the file's coordinates: ``"mm"``, ``"cm"``, ``"m"`` or ``"in"``.
+
+    Returns
+    -------
+    trimesh.Trimesh
+        Vertices (V, 3) float64 in mm, faces (F, 3) int64, duplicate vertices
+        merged, colours (``visual``) kept where the file has them.
+
+    Raises
+    ------
+    InvalidInputError
+        ``field="units"`` for an unknown unit.
+    InvalidMeshError
+        ``field="mesh"`` when the type is unknown, the bytes do not parse, or
+        the mesh has no faces, non-finite vertices, zero extent, more than
+        :data:`MAX_FACES` faces or a diameter above :data:`MAX_DIAMETER_MM`.
+    """
+    if units not in UNIT_TO_MM:
+        raise InvalidInputError(
+            f"units must be one of {sorted(UNIT_TO_MM)}, got {units!r}", "units"
+        )
+    kind = _file_type(data, file_type)
+    loaded = _parse(data, kind)
+    mesh = _as_single_mesh(loaded, kind)
+    _check_raw(mesh, kind)
+    mesh.merge_vertices()
+    scale = UNIT_TO_MM[units]
+    if scale != 1.0:
+        mesh.apply_scale(scale)
+    _check_size(mesh)
+    return mesh
+
+
+def mesh_diameter_mm(mesh: trimesh.Trimesh) -> float:
+    """Largest distance between two vertices, in the mesh's units (mm).
+
+    Only the convex hull's vertices can realise the maximum, so the quadratic
+    search runs on those (a few hundred for a typical part).
+    """
+    pts = np.asarray(mesh.vertices, dtype=np.float64)
+    if len(pts) < 2:
+        return 0.0
+    try:
+        hull_pts = np.asarray(mesh.convex_hull.vertices, dtype=np.float64)
+    except Exception:
+        # Qhull fails on flat or collinear point sets; the plain vertex set is
+        # then the fallback (rare, and such meshes are usually small).
+        hull_pts = np.unique(pts, axis=0)
+    return _max_pairwise_distance(hull_pts)
+
+
+def mesh_has_colour(mesh: trimesh.Trimesh) -> bool:
+    """True when the mesh carries its own colours (vertex, face or texture)."""
+    visual = mesh.visual
+    if visual is None or not visual.defined:
+        return False
+    return visual.kind in ("vertex", "face", "texture")
+
+
+def mesh_vertex_colours(mesh: trimesh.Trimesh) -> NDArray[np.uint8] | None:
+    """Per-vertex RGB colours, or ``None`` when the mesh has none.
+
+    Face colours are averaged onto vertices and textures sampled at the
+    vertices' UVs (trimesh's ``to_color``), so the result is coarser than what
+    the renderer draws for textured meshes.
+
+    Returns
+    -------
+    (V, 3) uint8 or None
+    """
+    if not mesh_has_colour(mesh):
+        return None
+    visual: Any = mesh.visual
+    if visual.kind == "texture":
+        visual = visual.to_color()
+    colours = np.asarray(visual.vertex_colors)
+    if colours.ndim != 2 or len(colours) != len(mesh.vertices):
+        return None
+    return np.ascontiguousarray(colours[:, :3], dtype=np.uint8)
+
+
+def _file_type(data: bytes | str | Path, file_type: str | None) -> str:
+    if file_type is None:
+        if isinstance(data, (str, Path)):
+            file_type = Path(data).suffix
+        else:
+            raise InvalidMeshError("file_type is required when the mesh is given as bytes", _FIELD)
+    kind = file_type.lower().lstrip(".")
+    if kind not in MESH_TYPES:
+        raise InvalidMeshError(
+            f"unknown mesh type {file_type!r}; expected one of {sorted(MESH_TYPES)}", _FIELD
+        )
+    return kind
+
+
+def _parse(data: bytes | str | Path, kind: str) -> object:
+    resolver: trimesh.resolvers.Resolver | None = None
+    if isinstance(data, (str, Path)):
+        path = Path(data)
+        try:
+            raw = path.read_bytes()
+        except OSError as exc:
+            raise InvalidMeshError(f"cannot read mesh file {str(path)!r}: {exc}", _FIELD) from exc
+        resolver = trimesh.resolvers.FilePathResolver(str(path.resolve()))
+    elif isinstance(data, (bytes, bytearray, memoryview)):
+        raw = bytes(data)
+    else:
+        raise InvalidMeshError(
+            f"mesh data must be bytes or a path, got {type(data).__name__}", _FIELD
+        )
+    if not raw:
+        raise InvalidMeshError("mesh file is empty", _FIELD)
+    try:
+        # process=False: finiteness is checked on the file's own vertices,
+        # before trimesh would silently drop NaN vertices and their faces.
+        return trimesh.load(io.BytesIO(raw), file_type=kind, resolver=resolver, process=False)
+    except Exception as exc:
+        # Each trimesh parser fails in its own way on bad input (ValueError,
+        # IndexError, KeyError, struct.error, ...): all mean "unparseable".
+        raise InvalidMeshError(
+            f"cannot parse the data as {kind.upper()}: {type(exc).__name__}: {exc}", _FIELD
+        ) from exc
+
+
+def _as_single_mesh(loaded: object, kind: str) -> trimesh.Trimesh:
+    if isinstance(loaded, trimesh.Scene):
+        meshes = [g for g in loaded.geometry.values() if isinstance(g, trimesh.Trimesh)]
+        if not meshes:
+            raise InvalidMeshError(
+                f"the {kind.upper()} data has no faces (no triangle mesh in it)", _FIELD
+            )
+        try:
+            # to_mesh applies the scene graph's transforms and concatenates
+            # the visuals (textures are packed, mixed kinds become colours).
+            return loaded.to_mesh()
+        except Exception as exc:
+            raise InvalidMeshError(
+                f"cannot flatten the {kind.upper()} scene into one mesh: {exc}", _FIELD
+            ) from exc
+    if isinstance(loaded, trimesh.Trimesh):
+        return loaded
+    raise InvalidMeshError(
+        f"the {kind.upper()} data has no faces (it parsed as a {type(loaded).__name__})", _FIELD
+    )
+
+
+def _check_raw(mesh: trimesh.Trimesh, kind: str) -> None:
+    faces = np.asarray(mesh.faces)
+    vertices = np.asarray(mesh.vertices)
+    if faces.ndim != 2 or len(faces) == 0:
+        raise InvalidMeshError(f"the {kind.upper()} mesh has no faces", _FIELD)
+    if len(faces) > MAX_FACES:
+        raise InvalidMeshError(
+            f"the mesh has {len(faces)} faces, more than the limit of {MAX_FACES}", _FIELD
+        )
+    if not np.all(np.isfinite(vertices)):
+        bad = int(np.count_nonzero(~np.all(np.isfinite(vertices), axis=1)))
+        raise InvalidMeshError(f"the mesh has {bad} vertices with NaN or infinite coordinates",
+                               _FIELD)
+    if faces.min() < 0 or faces.max() >= len(vertices):
+        raise InvalidMeshError("the mesh has faces referring to missing vertices", _FIELD)
+
+
+def _check_size(mesh: trimesh.Trimesh) -> None:
+    extent = float(np.max(mesh.extents))
+    if not extent > 0.0 or not float(mesh.area) > 0.0:
+        raise InvalidMeshError("the mesh has zero extent (all faces degenerate)", _FIELD)
+    diameter = mesh_diameter_mm(mesh)
+    if diameter > MAX_DIAMETER_MM:
+        raise InvalidMeshError(
+            f"the mesh is {diameter / 1000.0:.1f} m across, more than the limit of "
+            f"{MAX_DIAMETER_MM / 1000.0:.0f} m; check the units",
+            _FIELD,
+        )
+
+
+def _max_pairwise_distance(pts: NDArray[np.float64]) -> float:
+    best = 0.0
+    # Blocks bound the temporary (block, N) distance matrix to a few MB.
+    block = max(1, 2_000_000 // max(len(pts), 1))
+    for start in range(0, len(pts), block):
+        diff = pts[start : start + block, None, :] - pts[None, :, :]
+        best = max(best, float(np.sqrt(np.max(np.einsum("ijk,ijk->ij", diff, diff)))))
+    return best
