@@ -1,0 +1,20 @@
+"""A tiny generated paper set shared by the benchmark tests (96x72, 3 images + 1 negative)."""
+
+import dataclasses
+from pathlib import Path
+
+import pytest
+
+from viewloc_bench import povray, sets
+
+
+def tiny_paper_spec() -> sets.SetSpec:
+    return dataclasses.replace(sets.paper_spec(1, 1, scale=0.25), n_values=(0, 4, 9))
+
+
+@pytest.fixture(scope="session")
+def tiny_paper_set(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    if povray.povray_executable() is None:
+        pytest.skip("povray not installed")
+    root = tmp_path_factory.mktemp("bench_sets")
+    return sets.generate(tiny_paper_spec(), 7, root, workers=3, log=None)

@@ -1,0 +1,122 @@
+"""Runner smoke tests with an oracle-plus-noise localizer (a test double for the method)."""
+
+import hashlib
+import json
+import socket
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from viewloc_bench import cli, runner, sets
+from viewloc_bench.localizers import LearnedObject, detection_from_json
+from viewloc_core.camera import Camera
+from viewloc_core.detection import Detection, Similarity2D
+from viewloc_core.pose import Pose
+
+
+class OracleBackend:
+    """Knows the truth of each image (by its pixels) and answers it with a little noise."""
+
+    label = "oracle"
+
+    def __init__(self, bench: sets.BenchSet, miss: str, fp: bool) -> None:
+        self.truth: dict[str, Pose | None] = {}
+        for im in bench.images:
+            key = self._key(np.asarray(_load(im.path)))
+            self.truth[key] = im.targets[0].pose
+            if im.path.name == miss:
+                self.truth[key] = "miss"  # type: ignore[assignment]
+        self.fp = fp
+        self.rng = np.random.default_rng(0)
+
+    @staticmethod
+    def _key(image: np.ndarray) -> str:
+        return hashlib.sha1(image.tobytes()).hexdigest()
+
+    def check(self) -> None:
+        pass
+
+    def learn(self, obj: sets.BenchObject) -> LearnedObject:
+        def run(image: np.ndarray, camera: Camera) -> list[Detection]:
+            pose = self.truth[self._key(image)]
+            if pose == "miss" or (pose is None and not self.fp):
+                return []
+            if pose is None:
+                pose = Pose(np.eye(3), np.array([0.0, 0.0, 800.0]))
+            noise = Rotation.from_rotvec(self.rng.normal(size=3) * np.radians(0.5)).as_matrix()
+            est = Pose(noise @ pose.R_m2c, pose.t_m2c + self.rng.normal(size=3))
+            uv = camera.project(est.t_m2c[None])[0]
+            return [Detection(0.9, -10.0, 0, 0.0, 90.0, Similarity2D(uv[0], uv[1], 0.0, 1.0), est)]
+
+        return LearnedObject(obj.name, run, 0.01, 130, 18)
+
+
+def _load(path: Path) -> np.ndarray:
+    from PIL import Image
+
+    with Image.open(path) as im:
+        return np.asarray(im.convert("RGB"), dtype=np.uint8)
+
+
+def test_oracle_run_table_and_json(tiny_paper_set: Path, tmp_path: Path) -> None:
+    bench = sets.load_generated(tiny_paper_set)
+    miss = next(im.path.name for im in bench.images if im.targets[0].group == "N=4")
+    res = runner.evaluate_set(bench, OracleBackend(bench, miss, fp=True), log=lambda s: None)
+    groups = {g["group"]: g for g in res["groups"]}
+    assert set(groups) == {"N=0", "N=4", "N=9"}
+    assert groups["N=0"]["recognition_2d"] == 1.0 and groups["N=0"]["recognition_6d"] == 1.0
+    assert groups["N=4"]["recognition_2d"] == 0.0 and groups["N=4"]["mean_g"] is None
+    o = res["overall"]
+    assert o["targets"] == 3
+    assert o["recognition_2d"] == pytest.approx(2 / 3, abs=1e-3)
+    assert 0.99 < o["mean_g"] <= 1.0
+    # The missed target is a miss at every threshold: AR is at most 2/3.
+    assert o["ar_mssd"] <= 0.6667 and o["ar_mspd"] <= 0.6667
+    assert o["ar_mssd"] > 0.6 and o["adds_recall"] == pytest.approx(2 / 3, abs=1e-3)
+    assert o["worst_group_recognition_2d"] == 0.0
+    assert res["negatives"] == {"images": 1, "images_with_false_positive": 1, "false_positives": 1}
+    assert res["objects"]["barbell"]["model_views"] == 18
+    table = runner.format_table("paper", bench, res, "oracle")
+    assert "N=9" in table and "overall" in table and "false positives: 1 in 1/1" in table
+    out = tmp_path / "results.json"
+    runner.write_json({"sets": {"paper": res}}, out)
+    back = json.loads(out.read_text())
+    assert back["sets"]["paper"]["overall"]["targets"] == 3
+    missed = [r for r in back["sets"]["paper"]["records"] if not r["detected"]]
+    assert len(missed) == 1 and missed[0]["image"] == miss
+    runner.plot_fig2(res, tmp_path / "fig2.png")
+    assert (tmp_path / "fig2.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_cli_without_a_service_prints_the_table_and_exits_0(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]  # closed again: nothing listens there
+    code = cli.main([
+        "--sets", "paper", "--url", f"http://127.0.0.1:{port}", "--images-per-n", "1",
+        "--scale", "0.25", "--out", str(tmp_path), "--seed", "3",
+    ])
+    out = capsys.readouterr().out
+    assert code == 0
+    assert "engine not available" in out
+    assert "N=9" in out
+    res = json.loads((tmp_path / "results.json").read_text())
+    assert res["sets"]["paper"]["status"] == "engine not available"
+    assert res["sets"]["paper"]["images"] == 11
+
+
+def test_detection_from_api_json() -> None:
+    d = detection_from_json({
+        "score": 0.93, "log_probability": -12.4, "model_view": 7,
+        "view": {"azimuth_deg": 30.0, "polar_deg": 60.0},
+        "similarity": {"x": 301.2, "y": 188.7, "angle_deg": 12.5, "scale": 1.07},
+        "pose": {"R": np.eye(3).tolist(), "t_mm": [1.0, 2.0, 500.0],
+                 "quaternion_wxyz": [1, 0, 0, 0], "euler_xyz_deg": [0, 0, 0]},
+        "refined": True,
+    })
+    assert d.similarity.x == 301.2 and d.model_view == 7 and d.refined
+    assert np.allclose(d.pose.t_m2c, [1.0, 2.0, 500.0]) and d.polar_deg == 60.0

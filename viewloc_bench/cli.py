@@ -1,0 +1,160 @@
+"""``python -m viewloc_bench``: generate the sets, run the localizer, print and save the results."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from viewloc_bench import lmo, runner, sets
+from viewloc_bench.localizers import Backend, CoreBackend, EngineUnavailableError, HttpBackend
+
+ALL_SETS = ("paper", "hard", "lmo")
+QUICK_IMAGES_PER_N = 2
+QUICK_NEGATIVES = 2
+QUICK_LMO_IMAGES = 20
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(prog="python -m viewloc_bench", description=__doc__)
+    p.add_argument(
+        "--sets",
+        default=",".join(ALL_SETS),
+        help="comma-separated subset of paper,hard,lmo (default: all)",
+    )
+    p.add_argument(
+        "--url", default=None, help="measure the HTTP service at this URL instead of the core"
+    )
+    p.add_argument(
+        "--quick",
+        action="store_true",
+        help=f"smoke run: {QUICK_IMAGES_PER_N} images per N, {QUICK_LMO_IMAGES} LM-O images",
+    )
+    p.add_argument("--seed", type=int, default=0, help="seed of the generated sets and of learning")
+    p.add_argument("--out", type=Path, default=Path("bench_out"), help="output folder")
+    p.add_argument("--no-refine", action="store_true", help="localize without pose refinement")
+    p.add_argument(
+        "--heldout",
+        action="store_true",
+        help="evaluate LM-O's held-out objects 9, 10, 11, 12 instead of 1, 5, 6, 8",
+    )
+    p.add_argument("--workers", type=int, default=2, help="POV-Ray processes while generating")
+    p.add_argument(
+        "--lmo-extra",
+        type=Path,
+        default=None,
+        help="folder with LM-O's models_info.json etc. (default ../shared/data/lmo-bop19-extra)",
+    )
+    p.add_argument("--api-key", default=None, help="bearer token for --url")
+    p.add_argument(
+        "--images-per-n", type=int, default=None, help="override images per N (and negatives)"
+    )
+    p.add_argument(
+        "--scale", type=float, default=1.0, help="shrink generated images (smoke tests only)"
+    )
+    return p.parse_args(argv)
+
+
+def load_sets(args: argparse.Namespace, names: list[str]) -> dict[str, sets.BenchSet]:
+    """Generate (or reuse) and load the requested sets, printing the time each took."""
+    root = args.out / "sets"
+    out: dict[str, sets.BenchSet] = {}
+    per_n = QUICK_IMAGES_PER_N if args.quick else 10
+    if args.images_per_n is not None:
+        per_n = args.images_per_n
+    neg = min(per_n, QUICK_NEGATIVES) if args.quick or args.images_per_n is not None else None
+    for name in names:
+        t0 = time.perf_counter()
+        if name in ("paper", "hard"):
+            spec = (
+                sets.paper_spec(per_n, 10 if neg is None else neg, args.scale)
+                if name == "paper"
+                else sets.hard_spec(per_n, 6 if neg is None else neg, args.scale)
+            )
+            folder = sets.generate(spec, args.seed, root, workers=args.workers)
+            bench = sets.load_generated(folder)
+            took = time.perf_counter() - t0
+            state = "generated" if took > 1.0 else "cached"
+            print(
+                f"set {name}: {len(bench.images)} images in {folder} ({state}; "
+                f"generation took {bench.generation_s:.1f} s)"
+            )
+        else:
+            folder, took = lmo.prepare(root, args.lmo_extra)
+            ids = lmo.HELDOUT_OBJECTS if args.heldout else lmo.DEV_OBJECTS
+            bench = lmo.load(folder, ids, QUICK_LMO_IMAGES if args.quick else None)
+            bench.generation_s = took
+            print(
+                f"set lmo: {len(bench.images)} images, objects {list(bench.objects)} in {folder} "
+                f"({f'extracted in {took:.1f} s' if took else 'cached'})"
+            )
+        out[name] = bench
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    names = [s.strip() for s in args.sets.split(",") if s.strip()]
+    unknown = [n for n in names if n not in ALL_SETS]
+    if unknown:
+        print(f"unknown set(s) {unknown}; choose from {ALL_SETS}", file=sys.stderr)
+        return 2
+    args.out.mkdir(parents=True, exist_ok=True)
+    benches = load_sets(args, names)
+    refine = not args.no_refine
+    backend: Backend = (
+        HttpBackend(args.url, refine=refine, api_key=args.api_key)
+        if args.url
+        else CoreBackend(refine=refine, seed=args.seed)
+    )
+    results: dict[str, Any] = {
+        "created": datetime.now(UTC).isoformat(timespec="seconds"),
+        "backend": backend.label,
+        "args": {
+            k: (str(v) if isinstance(v, Path) else v)
+            for k, v in vars(args).items()
+            if k != "api_key"
+        },
+        "definitions": {
+            "recognized_2d": "top detection's (x, y) within 0.1 x image diameter "
+            "(focal_px * diameter_mm / z) of the projected object origin",
+            "recognized_6d": "top detection's MSSD < 0.1 x object diameter (symmetry-aware)",
+            "g": "paper Eq. 3, fz=1/250000, fxy=1/50000, falpha=1/10000, mm and deg, "
+            "min over symmetries; mean/median over 2D-recognized targets",
+        },
+        "sets": {},
+    }
+    try:
+        backend.check()
+        available = True
+    except EngineUnavailableError as exc:
+        print(str(exc))
+        available = False
+    header_base = f"{backend.label}, refine {'on' if refine else 'off'}"
+    for name, bench in benches.items():
+        entry: dict[str, Any] = {
+            "folder": str(bench.folder),
+            "generation_s": bench.generation_s,
+            "images": len(bench.images),
+        }
+        if not available:
+            print(runner.format_table(name, bench, None, header_base))
+            entry["status"] = "engine not available"
+            results["sets"][name] = entry
+            continue
+        t0 = time.perf_counter()
+        res = runner.evaluate_set(bench, backend)
+        entry.update(res)
+        entry["wall_s"] = round(time.perf_counter() - t0, 1)
+        results["sets"][name] = entry
+        print(runner.format_table(name, bench, res, header_base))
+        if name == "paper":
+            runner.plot_fig2(res, args.out / "paper_fig2.png")
+            print(f"plot: {args.out / 'paper_fig2.png'}")
+        runner.write_json(results, args.out / "results.json")
+    runner.write_json(results, args.out / "results.json")
+    print(f"results: {args.out / 'results.json'}")
+    return 0

@@ -1,0 +1,311 @@
+"""Run a localizer over a set, score every target, summarise, print, save.
+
+Scoring (definitions in :mod:`viewloc_core.metrics`): per target, the top
+detection (highest score) is compared with the truth. A target without a
+detection is a miss in every rate and recall and has no g. The paper's
+recognition rate is the 2D one; mean and median g are over the 2D-recognized
+targets, as in the paper's §5.1. Images without the object (negatives) only
+count false positives: any returned detection is one.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from PIL import Image
+
+from viewloc_bench.localizers import Backend, LearnedObject
+from viewloc_bench.sets import BenchImage, BenchObject, BenchSet, Target
+from viewloc_core import metrics as vm
+from viewloc_core.detection import Detection
+
+Record = dict[str, Any]
+
+
+def score_target(
+    target: Target, obj: BenchObject, image: BenchImage, dets: list[Detection], latency_ms: float
+) -> Record:
+    """Metrics of the top detection against one target with a pose."""
+    assert target.pose is not None
+    cam = image.camera
+    rec: Record = {
+        "image": image.path.name,
+        "object": target.object_name,
+        "group": target.group,
+        "n_clutter": target.n_clutter,
+        "visible_fraction": target.visible_fraction,
+        "latency_ms": round(latency_ms, 3),
+        "detected": bool(dets),
+        "image_diameter_px": vm.image_diameter_px(cam, target.pose, obj.diameter_mm),
+    }
+    if not dets:
+        rec.update(recognized_2d=False, recognized_6d=False)
+        return rec
+    det = max(dets, key=lambda d: d.score)
+    xy = np.array([det.similarity.x, det.similarity.y])
+    dz, dxy, da = vm.paper_deltas(det.pose, target.pose, obj.symmetries)
+    e_mssd = vm.mssd(det.pose, target.pose, obj.pts_obj, obj.symmetries)
+    rec.update(
+        score=det.score,
+        refined=det.refined,
+        ref_err_px=vm.reference_point_error_px(xy, cam, target.pose),
+        recognized_2d=vm.recognized_2d(xy, cam, target.pose, obj.diameter_mm),
+        dz_mm=dz,
+        dxy_mm=dxy,
+        dalpha_deg=da,
+        g=vm.g_from_deltas(dz, dxy, da),
+        mssd_mm=e_mssd,
+        mspd_px=vm.mspd(det.pose, target.pose, obj.pts_obj, cam, obj.symmetries),
+        adds_mm=vm.add_s(det.pose, target.pose, obj.pts_obj),
+        recognized_6d=vm.recognized_6d(e_mssd, obj.diameter_mm),
+    )
+    return rec
+
+
+def _nan_to_none(x: float) -> float | None:
+    return None if (x is None or not math.isfinite(x)) else round(float(x), 4)
+
+
+def summarise(records: list[Record], objects: dict[str, BenchObject], width: int) -> Record:
+    """Rates, g statistics, BOP average recalls, ADD-S recall and latency of some targets."""
+    n = len(records)
+    out: Record = {"targets": n}
+    if n == 0:
+        return out
+    rec2d = np.array([r["recognized_2d"] for r in records], dtype=bool)
+    rec6d = np.array([r["recognized_6d"] for r in records], dtype=bool)
+    g = np.array([r["g"] for r, ok in zip(records, rec2d, strict=True) if ok], dtype=np.float64)
+    inf = float("inf")
+    mssd = np.array([r.get("mssd_mm", inf) for r in records], dtype=np.float64)
+    mspd = np.array([r.get("mspd_px", inf) for r in records], dtype=np.float64)
+    adds = np.array([r.get("adds_mm", inf) for r in records], dtype=np.float64)
+    diam = np.array([objects[r["object"]].diameter_mm for r in records], dtype=np.float64)
+    lat = np.array([r["latency_ms"] for r in records], dtype=np.float64)
+    out.update(
+        detected=round(float(np.mean([r["detected"] for r in records])), 4),
+        recognition_2d=round(float(rec2d.mean()), 4),
+        recognition_6d=round(float(rec6d.mean()), 4),
+        mean_g=_nan_to_none(float(g.mean())) if len(g) else None,
+        median_g=_nan_to_none(float(np.median(g))) if len(g) else None,
+        ar_mssd=round(vm.average_recall(mssd, diam[:, None] * vm.MSSD_THRESHOLDS_REL[None]), 4),
+        ar_mspd=round(vm.average_recall(mspd, vm.mspd_thresholds_px(width)), 4),
+        adds_recall=round(float(vm.recall_at(adds, (diam * vm.ADDS_THRESHOLD_REL)[:, None])[0]), 4),
+        latency_median_ms=round(float(np.median(lat)), 2),
+        latency_p95_ms=round(float(np.percentile(lat, 95)), 2),
+    )
+    return out
+
+
+def _group_key(group: str) -> tuple[int, str]:
+    if group.startswith("N="):
+        return (int(group[2:]), group)
+    return (10**6, group)
+
+
+def evaluate_set(
+    bench: BenchSet,
+    backend: Backend,
+    log: Callable[[str], None] = print,
+    learned_cache: dict[str, LearnedObject] | None = None,
+) -> Record:
+    """Learn each object of a set, localize it in every image it belongs to, score.
+
+    Returns
+    -------
+    dict
+        ``objects`` (learning figures), ``groups`` (per object and group),
+        ``overall``, ``per_object``, ``negatives`` and ``records``.
+    """
+    width = bench.images[0].camera.width if bench.images else 640
+    records: list[Record] = []
+    negatives: list[Record] = []
+    learned_info: dict[str, Record] = {}
+    for name, obj in bench.objects.items():
+        imgs = [im for im in bench.images if any(t.object_name == name for t in im.targets)]
+        if not imgs:
+            continue
+        if learned_cache is not None and name in learned_cache:
+            learned = learned_cache[name]
+        else:
+            log(f"  learning {name} ...")
+            learned = backend.learn(obj)
+            if learned_cache is not None:
+                learned_cache[name] = learned
+        learned_info[name] = {
+            "learn_s": round(learned.learn_s, 2),
+            "training_views": learned.training_views,
+            "model_views": learned.model_views,
+            **learned.info,
+        }
+        log(
+            f"  {name}: learned in {learned.learn_s:.1f} s, training views "
+            f"{learned.training_views}, model views {learned.model_views}"
+        )
+        for im in imgs:
+            with Image.open(im.path) as pil:
+                image = np.asarray(pil.convert("RGB"), dtype=np.uint8)
+            t0 = time.perf_counter()
+            dets = learned.localize(image, im.camera)
+            latency_ms = (time.perf_counter() - t0) * 1000.0
+            for t in im.targets:
+                if t.object_name != name:
+                    continue
+                if t.pose is None:
+                    negatives.append(
+                        {
+                            "image": im.path.name,
+                            "object": name,
+                            "detections": len(dets),
+                            "top_score": max((d.score for d in dets), default=None),
+                            "latency_ms": round(latency_ms, 3),
+                        }
+                    )
+                else:
+                    records.append(score_target(t, obj, im, dets, latency_ms))
+    groups = []
+    keys = sorted(
+        {(r["object"], r["group"]) for r in records}, key=lambda k: (k[0], _group_key(k[1]))
+    )
+    for obj_name, group in keys:
+        sub = [r for r in records if r["object"] == obj_name and r["group"] == group]
+        groups.append({"object": obj_name, "group": group, **summarise(sub, bench.objects, width)})
+    per_object = {
+        o: summarise([r for r in records if r["object"] == o], bench.objects, width)
+        for o in bench.objects
+    }
+    overall = summarise(records, bench.objects, width)
+    rec_by_n: dict[str, list[float]] = {}
+    for g in groups:
+        rec_by_n.setdefault(g["group"], []).append(g["recognition_2d"])
+    if rec_by_n:
+        overall["worst_group_recognition_2d"] = round(min(min(v) for v in rec_by_n.values()), 4)
+    neg = {
+        "images": len(negatives),
+        "images_with_false_positive": sum(1 for r in negatives if r["detections"] > 0),
+        "false_positives": sum(r["detections"] for r in negatives),
+    }
+    return {
+        "objects": learned_info,
+        "groups": groups,
+        "per_object": per_object,
+        "overall": overall,
+        "negatives": neg,
+        "records": records,
+        "negative_records": negatives,
+    }
+
+
+def _fmt(x: Any, spec: str = ".3f") -> str:
+    if x is None:
+        return "-"
+    if isinstance(x, float):
+        return format(x, spec)
+    return str(x)
+
+
+def format_table(name: str, bench: BenchSet, result: Record | None, header: str) -> str:
+    """The printed table of one set (``result`` None: only the set's composition)."""
+    lines = [f"== {name} set: {header} =="]
+    lines.append(
+        f"{'object':<12} {'group':<9} {'images':>6} {'rec2D':>6} {'rec6D':>6} "
+        f"{'mean g':>7} {'med g':>7} {'AR_MSSD':>8} {'AR_MSPD':>8} {'ADD-S':>6}"
+    )
+    if result is None:
+        counts: dict[tuple[str, str], int] = {}
+        for im in bench.images:
+            for t in im.targets:
+                if t.pose is not None:
+                    counts[(t.object_name, t.group)] = counts.get((t.object_name, t.group), 0) + 1
+        for (obj, group), c in sorted(
+            counts.items(), key=lambda kv: (kv[0][0], _group_key(kv[0][1]))
+        ):
+            lines.append(
+                f"{obj:<12} {group:<9} {c:>6} {'-':>6} {'-':>6} {'-':>7} {'-':>7} "
+                f"{'-':>8} {'-':>8} {'-':>6}"
+            )
+        lines.append("engine not available: sets generated, nothing measured")
+        return "\n".join(lines)
+    for g in result["groups"]:
+        lines.append(
+            f"{g['object']:<12} {g['group']:<9} {g['targets']:>6} "
+            f"{_fmt(g.get('recognition_2d'), '.2f'):>6} {_fmt(g.get('recognition_6d'), '.2f'):>6} "
+            f"{_fmt(g.get('mean_g')):>7} {_fmt(g.get('median_g')):>7} "
+            f"{_fmt(g.get('ar_mssd')):>8} {_fmt(g.get('ar_mspd')):>8} "
+            f"{_fmt(g.get('adds_recall'), '.2f'):>6}"
+        )
+    o = result["overall"]
+    lines.append(
+        f"{'overall':<12} {'all':<9} {o['targets']:>6} {_fmt(o.get('recognition_2d'), '.2f'):>6} "
+        f"{_fmt(o.get('recognition_6d'), '.2f'):>6} {_fmt(o.get('mean_g')):>7} "
+        f"{_fmt(o.get('median_g')):>7} {_fmt(o.get('ar_mssd')):>8} {_fmt(o.get('ar_mspd')):>8} "
+        f"{_fmt(o.get('adds_recall'), '.2f'):>6}"
+    )
+    neg = result["negatives"]
+    lines.append(
+        f"worst-group rec2D {_fmt(o.get('worst_group_recognition_2d'), '.2f')}; latency median "
+        f"{_fmt(o.get('latency_median_ms'), '.1f')} ms, "
+        f"p95 {_fmt(o.get('latency_p95_ms'), '.1f')} ms; "
+        f"false positives: {neg['false_positives']} in {neg['images_with_false_positive']}"
+        f"/{neg['images']} images without the object"
+    )
+    for obj_name, info in result["objects"].items():
+        lines.append(
+            f"learned {obj_name}: {info['learn_s']:.1f} s, training views {info['training_views']},"
+            f" model views {info['model_views']}"
+        )
+    return "\n".join(lines)
+
+
+def plot_fig2(result: Record, path: Path) -> None:
+    """Recognition rate and mean g against the number of clutter objects (paper Fig. 2)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = [g for g in result["groups"] if g["group"].startswith("N=")]
+    n = [int(g["group"][2:]) for g in rows]
+    fig, ax = plt.subplots(figsize=(6, 4), dpi=110)
+    ax.plot(n, [g["recognition_2d"] for g in rows], "o-", label="recognition rate (2D)")
+    ax.plot(n, [g["recognition_6d"] for g in rows], "s--", label="recognition rate (6D, MSSD<0.1d)")
+    ax.plot(
+        n,
+        [g["mean_g"] if g["mean_g"] is not None else np.nan for g in rows],
+        "^-",
+        label="mean g(L,T) if recognized",
+    )
+    ax.set_xlabel("Number of random clutter objects")
+    ax.set_ylim(0.0, 1.05)
+    ax.set_xticks(n)
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc="lower left", fontsize=8)
+    ax.set_title("Barbell among clutter (cf. paper Fig. 2)")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def write_json(results: Record, path: Path) -> None:
+    """Write results, turning numpy scalars and non-finite floats into JSON values."""
+
+    def clean(x: Any) -> Any:
+        if isinstance(x, dict):
+            return {str(k): clean(v) for k, v in x.items()}
+        if isinstance(x, list | tuple):
+            return [clean(v) for v in x]
+        if isinstance(x, np.generic):
+            x = x.item()
+        if isinstance(x, float):
+            return x if math.isfinite(x) else None
+        if isinstance(x, Path):
+            return str(x)
+        return x
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(clean(results), indent=1))

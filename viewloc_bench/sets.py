@@ -1,0 +1,388 @@
+"""Benchmark sets: generation of the POV-Ray sets into a cache folder, and loading.
+
+A generated set lives in ``<root>/<name>-<hash>/`` where the hash covers the
+generator version, the seed and every parameter, so a folder is reused only
+when it would be generated identically. It holds the images (PNG), the
+visible masks of the target (``mask_visib/*.png``) and ``gt.json``::
+
+    {"generator_version", "name", "seed", "params", "generation_s",
+     "camera": {"fx", "fy", "cx", "cy", "width", "height", "K"},
+     "objects": {name: {"mesh": file name in viewloc_bench/assets, "diameter_mm",
+                        "symmetries_discrete": [[16 numbers], ...],
+                        "symmetries_continuous": [{"axis", "offset"}, ...]}},
+     "images": [{"file", "object", "present", "n_clutter", "R", "t_mm",
+                 "visible_fraction", "distance_mm", "material", "background",
+                 "lights", "fog"}, ...]}
+
+Every image has its own random generator seeded from (seed, set, object,
+N, index): the quick subset is the first images of the full set, and the set
+does not depend on the number of parallel workers.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import trimesh
+from numpy.typing import NDArray
+from PIL import Image
+
+from viewloc_bench import povray as pv
+from viewloc_bench import scenes, shapes
+from viewloc_core.camera import Camera
+from viewloc_core.metrics import symmetry_transforms
+from viewloc_core.pose import Pose, orthonormalize
+
+Array = NDArray[np.float64]
+
+GENERATOR_VERSION = "1"
+SET_CODES = {"paper": 1, "hard": 2}
+
+
+@dataclass(frozen=True, slots=True)
+class SetSpec:
+    """Parameters of a generated set (all of them enter the cache hash)."""
+
+    name: str
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    objects: tuple[str, ...]
+    n_values: tuple[int, ...]
+    images_per_n: int
+    negatives: int
+    scene: scenes.SceneParams = field(default_factory=scenes.SceneParams)
+    antialias: float = 0.3
+
+    @property
+    def camera(self) -> Camera:
+        return Camera(self.fx, self.fy, self.cx, self.cy, self.width, self.height)
+
+
+def paper_spec(images_per_n: int = 10, negatives: int = 10, scale: float = 1.0) -> SetSpec:
+    """The paper's set (§5.1): the barbell among N = 0..9 clutter objects at 384×288.
+
+    ``scale`` shrinks the image and focal length together (tests use tiny images).
+    """
+    return SetSpec(
+        "paper",
+        round(384 * scale),
+        round(288 * scale),
+        500.0 * scale,
+        500.0 * scale,
+        190.7 * scale,
+        144.2 * scale,
+        ("barbell",),
+        tuple(range(10)),
+        images_per_n,
+        negatives,
+        scenes.SceneParams(),
+    )
+
+
+def hard_spec(images_per_n: int = 10, negatives: int = 6, scale: float = 1.0) -> SetSpec:
+    """The hard set: bracket and free-form blob at 640×480, textures, metal, fog."""
+    return SetSpec(
+        "hard",
+        round(640 * scale),
+        round(480 * scale),
+        620.0 * scale,
+        620.0 * scale,
+        322.4 * scale,
+        238.1 * scale,
+        ("bracket", "freeform"),
+        (0, 2, 4, 6),
+        images_per_n,
+        negatives,
+        scenes.SceneParams(
+            distance_mm=(450.0, 1000.0),
+            metal_prob=0.5,
+            floor_prob=0.9,
+            textured_prob=0.85,
+            fog_prob=0.25,
+        ),
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class BenchObject:
+    """An object to learn and find.
+
+    Attributes
+    ----------
+    name : str
+    mesh_path : Path
+        Mesh file in mm.
+    diameter_mm : float
+    symmetries : (K, 4, 4) float64
+        Symmetry transforms incl. identity (continuous ones every 1°).
+    pts_obj : (N, 3) float64
+        Model vertices for MSSD/MSPD/ADD-S, mm.
+    """
+
+    name: str
+    mesh_path: Path
+    diameter_mm: float
+    symmetries: Array
+    pts_obj: Array
+
+
+@dataclass(frozen=True, slots=True)
+class Target:
+    """One object instance to find in an image (``pose`` None: a negative, the object is absent)."""
+
+    object_name: str
+    pose: Pose | None
+    group: str
+    n_clutter: int | None = None
+    visible_fraction: float | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class BenchImage:
+    """One test image with its camera and targets."""
+
+    path: Path
+    camera: Camera
+    targets: tuple[Target, ...]
+
+
+@dataclass(slots=True)
+class BenchSet:
+    """A loaded set."""
+
+    name: str
+    folder: Path
+    objects: dict[str, BenchObject]
+    images: list[BenchImage]
+    generation_s: float = 0.0
+    meta: dict[str, Any] = field(default_factory=dict)
+
+
+def spec_hash(spec: SetSpec, seed: int) -> str:
+    """Hash of generator version, seed and parameters (12 hex digits)."""
+    blob = json.dumps(
+        {"version": GENERATOR_VERSION, "seed": seed, "spec": asdict(spec)}, sort_keys=True
+    )
+    return hashlib.sha256(blob.encode()).hexdigest()[:12]
+
+
+def _image_rng(seed: int, spec: SetSpec, obj_idx: int, n: int, i: int) -> np.random.Generator:
+    code = n if n >= 0 else 1000  # negatives
+    return np.random.default_rng(
+        np.random.SeedSequence([seed, SET_CODES[spec.name], obj_idx, code, i])
+    )
+
+
+def _jobs(spec: SetSpec) -> list[tuple[int, int, int, bool]]:
+    """(object index, N, image index, object present) per image, in file order."""
+    jobs = [
+        (oi, n, i, True)
+        for oi in range(len(spec.objects))
+        for n in spec.n_values
+        for i in range(spec.images_per_n)
+    ]
+    # Negatives: clutter only, N drawn from the upper half of the set's range.
+    jobs += [(oi, -1, i, False) for oi in range(len(spec.objects)) for i in range(spec.negatives)]
+    return jobs
+
+
+def _object_entry(name: str) -> dict[str, Any]:
+    shape = shapes.SHAPES[name]()
+    mesh = shapes.to_trimesh(shape)
+    return {
+        "mesh": shapes.ASSET_FILES[name],
+        "diameter_mm": shapes.diameter_mm(mesh),
+        "symmetries_discrete": [np.asarray(s).reshape(-1).tolist() for s in shape.sym_discrete],
+        "symmetries_continuous": [
+            {"axis": np.asarray(a).tolist(), "offset": np.asarray(o).tolist()}
+            for a, o in shape.sym_continuous
+        ],
+    }
+
+
+def _render_one(
+    spec: SetSpec, seed: int, job: tuple[int, int, int, bool], folder: Path, threads: int
+) -> dict[str, Any]:
+    oi, n, i, present = job
+    name = spec.objects[oi]
+    rng = _image_rng(seed, spec, oi, n, i)
+    camera = spec.camera
+    shape = shapes.SHAPES[name]()
+    pts = np.asarray(shapes.to_trimesh(shape).convex_hull.vertices, dtype=np.float64)
+    if not present:
+        n = int(rng.integers(max(spec.n_values) // 2, max(spec.n_values) + 1))
+    scene = scenes.draw_scene(
+        rng, camera, shape if present else None, pts if present else None, n, spec.scene
+    )
+    visible = 1.0
+    mask = np.zeros((camera.height, camera.width), dtype=bool)
+    if present:
+        alone = scenes.target_mask(scene, threads)
+        for attempt in range(scenes.MAX_CLUTTER_ATTEMPTS + 1):
+            mask = scenes.visible_mask(scene, threads) if n > 0 else alone
+            visible = float(mask.sum() / max(1, alone.sum()))
+            if visible >= spec.scene.min_visible:
+                break
+            behind = attempt + 1 >= scenes.MAX_CLUTTER_ATTEMPTS
+            scene.clutter = scenes.sample_clutter(
+                rng, camera, n, spec.scene, scene.target, behind_only=behind
+            )
+    img = pv.render(
+        scenes.scene_sdl(scene, "color"),
+        camera.width,
+        camera.height,
+        antialias=spec.antialias,
+        threads=threads,
+    )
+    stem = f"{name}_n{n:02d}_{i:03d}" if present else f"{name}_neg_{i:03d}"
+    Image.fromarray(img).save(folder / f"{stem}.png", optimize=False)
+    entry: dict[str, Any] = {
+        "file": f"{stem}.png",
+        "object": name,
+        "present": present,
+        "n_clutter": len(scene.clutter),
+        "background": scene.background_kind,
+        "lights": len(scene.lights),
+        "fog": bool(scene.fog_sdl),
+    }
+    if present and scene.target is not None:
+        Image.fromarray((mask * 255).astype(np.uint8)).save(folder / "mask_visib" / f"{stem}.png")
+        entry.update(
+            R=scene.target.pose.R_m2c.tolist(),
+            t_mm=scene.target.pose.t_m2c.tolist(),
+            visible_fraction=round(visible, 4),
+            distance_mm=float(np.linalg.norm(scene.target.pose.t_m2c)),
+            material=scene.material,
+        )
+    return entry
+
+
+def generate(
+    spec: SetSpec,
+    seed: int,
+    root: Path,
+    workers: int = 3,
+    threads: int = 1,
+    log: Callable[[str], None] | None = print,
+) -> Path:
+    """Generate a set into ``root/<name>-<hash>/`` unless it is already there.
+
+    Parameters
+    ----------
+    workers : int
+        POV-Ray processes at a time (each spends much of its start-up idle).
+    threads : int
+        Render threads per process.
+
+    Returns
+    -------
+    Path
+        The set folder (with ``gt.json``).
+    """
+    folder = Path(root) / f"{spec.name}-{spec_hash(spec, seed)}"
+    if (folder / "gt.json").exists():
+        return folder
+    tmp = folder.with_name(folder.name + ".partial")
+    shutil.rmtree(tmp, ignore_errors=True)
+    (tmp / "mask_visib").mkdir(parents=True)
+    jobs = _jobs(spec)
+    t0 = time.perf_counter()
+    done = 0
+    entries: list[dict[str, Any]] = []
+    with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
+        futures = [pool.submit(_render_one, spec, seed, j, tmp, threads) for j in jobs]
+        for fut in futures:
+            entries.append(fut.result())
+            done += 1
+            if log is not None and (done % 10 == 0 or done == len(jobs)):
+                log(f"  {spec.name}: {done}/{len(jobs)} images, {time.perf_counter() - t0:.0f} s")
+    elapsed = time.perf_counter() - t0
+    cam = spec.camera
+    gt = {
+        "generator_version": GENERATOR_VERSION,
+        "name": spec.name,
+        "seed": seed,
+        "params": asdict(spec),
+        "generation_s": round(elapsed, 2),
+        "camera": {
+            "fx": cam.fx,
+            "fy": cam.fy,
+            "cx": cam.cx,
+            "cy": cam.cy,
+            "width": cam.width,
+            "height": cam.height,
+            "K": cam.K.tolist(),
+        },
+        "objects": {name: _object_entry(name) for name in spec.objects},
+        "images": entries,
+    }
+    (tmp / "gt.json").write_text(json.dumps(gt, indent=1))
+    shutil.rmtree(folder, ignore_errors=True)
+    tmp.rename(folder)
+    return folder
+
+
+def load_object(
+    name: str,
+    mesh_path: Path,
+    diameter_mm: float,
+    sym_discrete: list[list[float]],
+    sym_continuous: list[dict[str, list[float]]],
+) -> BenchObject:
+    """A BenchObject from a mesh file and BOP-style symmetry annotations."""
+    mesh = trimesh.load(mesh_path, force="mesh", process=False)
+    assert isinstance(mesh, trimesh.Trimesh)
+    syms = symmetry_transforms(
+        [np.asarray(s, dtype=np.float64).reshape(4, 4) for s in sym_discrete],
+        [(np.asarray(c["axis"]), np.asarray(c["offset"])) for c in sym_continuous],
+        step_deg=1.0,
+    )
+    return BenchObject(
+        name,
+        Path(mesh_path),
+        float(diameter_mm),
+        syms,
+        np.asarray(mesh.vertices, dtype=np.float64),
+    )
+
+
+def load_generated(folder: Path) -> BenchSet:
+    """Load a generated set from its folder."""
+    folder = Path(folder)
+    gt = json.loads((folder / "gt.json").read_text())
+    c = gt["camera"]
+    camera = Camera(c["fx"], c["fy"], c["cx"], c["cy"], c["width"], c["height"])
+    objects = {
+        name: load_object(
+            name,
+            shapes.ASSETS_DIR / o["mesh"],
+            o["diameter_mm"],
+            o["symmetries_discrete"],
+            o["symmetries_continuous"],
+        )
+        for name, o in gt["objects"].items()
+    }
+    images = []
+    for e in gt["images"]:
+        if e["present"]:
+            pose = Pose(orthonormalize(np.asarray(e["R"])), np.asarray(e["t_mm"]))
+            target = Target(
+                e["object"], pose, f"N={e['n_clutter']}", e["n_clutter"], e["visible_fraction"]
+            )
+        else:
+            target = Target(e["object"], None, "negative", e["n_clutter"])
+        images.append(BenchImage(folder / e["file"], camera, (target,)))
+    return BenchSet(gt["name"], folder, objects, images, gt["generation_s"], gt)
