@@ -125,10 +125,11 @@ def localize_object(
     """Find the object; no detection above ``min_score`` answers ``"detections": []``."""
     t0 = time.perf_counter()
     timing: dict[str, float] = {}
+    store.get_object(object_id)  # 404 before anything else
     opts = parse_json_field(options, LocalizeOptionsIn, "options")
-    model = _ready_model(store, object_id)
     img = _decode(image, settings, timing)
     cam = _camera(camera, img.shape[1], img.shape[0])
+    model = _ready_model(store, object_id)
     dets, core_timing = _run(model, img, cam, opts, metrics)
     core_total = core_timing.pop("total", None)
     timing.update(core_timing)
@@ -179,9 +180,11 @@ def localize_many(
         for i, oid in enumerate(ids):
             if not is_valid_id(oid):
                 raise ObjectNotFoundError(f"no object {oid!r}", f"options.object_ids[{i}]")
-    models = [(oid, _ready_model(store, oid)) for oid in ids]
+    for oid in ids:
+        store.get_object(oid)
     img = _decode(image, settings, timing)
     cam = _camera(camera, img.shape[1], img.shape[0])
+    models = [(oid, _ready_model(store, oid)) for oid in ids]
     all_dets: list[Detection] = []
     drawn: list[tuple[Any, list[Detection]]] = []
     localize_ms = 0.0

@@ -1,0 +1,260 @@
+"""The HTTP contract against a real uvicorn server: shapes, bad input, auth, operations."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import httpx
+import pytest
+from openapi_spec_validator import validate
+
+from model_store import ModelStore
+from tests.app.conftest import TEST_TASKS, LiveServer, free_port
+from tests.app.helpers import CAMERA, assert_problem, box_stl, png, upload_mesh, wait_job
+
+SLEEPY = {**TEST_TASKS, "learn_mesh": TEST_TASKS["sleepy"]}
+
+
+def test_object_and_job_lifecycle(make_server: Callable[..., LiveServer]) -> None:
+    srv = make_server(tasks=SLEEPY)
+    with httpx.Client(base_url=srv.url, timeout=30) as c:
+        r = upload_mesh(c)
+        assert r.status_code == 202, r.text
+        body = r.json()
+        obj, job = body["object"], body["job"]
+        assert r.headers["location"] == f"/v1/jobs/{job['job_id']}"
+        assert set(obj) >= {"object_id", "name", "state", "source", "diameter_mm",
+                            "training_views", "model_views", "created_at", "job_id"}
+        assert obj["state"] == "learning" and obj["source"] == "mesh" and obj["name"] == "box"
+        assert abs(obj["diameter_mm"] - (40**2 + 20**2 + 10**2) ** 0.5) < 1e-6
+        assert set(job) == {"job_id", "object_id", "state", "progress", "stage", "error",
+                            "created_at", "started_at", "finished_at"}
+        # Not ready while learning: 409.
+        r = c.post(f"/v1/objects/{obj['object_id']}/localize",
+                   files={"image": ("s.png", png(), "image/png")},
+                   data={"camera": json.dumps(CAMERA)})
+        assert_problem(r, 409)
+        done = wait_job(c, job["job_id"])
+        assert done["state"] == "succeeded" and done["progress"] == 1.0 or done["progress"] > 0.9
+        assert done["finished_at"] and done["started_at"]
+        listed = c.get("/v1/objects").json()["objects"]
+        assert [o["object_id"] for o in listed] == [obj["object_id"]]
+        assert c.get(f"/v1/objects/{obj['object_id']}").json()["job_id"] == job["job_id"]
+        assert c.delete(f"/v1/objects/{obj['object_id']}").status_code == 204
+        assert_problem(c.get(f"/v1/objects/{obj['object_id']}"), 404)
+        assert_problem(c.delete(f"/v1/objects/{obj['object_id']}"), 404)
+
+
+def test_delete_cancels_running_job(make_server: Callable[..., LiveServer]) -> None:
+    srv = make_server(tasks=SLEEPY)
+    with httpx.Client(base_url=srv.url, timeout=30) as c:
+        created = upload_mesh(c).json()
+        job_id = created["job"]["job_id"]
+        wait_job(c, job_id, ("running",))
+        assert c.delete(f"/v1/objects/{created['object']['object_id']}").status_code == 204
+        assert wait_job(c, job_id)["state"] == "cancelled"
+        # and cancelling through /v1/jobs answers the (terminal) job unchanged
+        r = c.delete(f"/v1/jobs/{job_id}")
+        assert r.status_code == 200 and r.json()["state"] == "cancelled"
+
+
+def test_bad_input_is_4xx_problem_json_and_leaves_the_store_intact(
+    make_server: Callable[..., LiveServer], tmp_path: Path
+) -> None:
+    srv = make_server(tasks=SLEEPY, max_mesh_bytes=50_000, max_image_bytes=400_000,
+                      max_image_pixels=1_000_000, max_images=3)
+    with httpx.Client(base_url=srv.url, timeout=30) as c:
+        good = upload_mesh(c).json()
+        oid = good["object"]["object_id"]
+        wait_job(c, good["job"]["job_id"])
+        files_before = sorted(p.relative_to(tmp_path) for p in (tmp_path / "var").rglob("*")
+                              if p.is_file() and "sqlite" not in p.name)
+        image = ("s.png", png(), "image/png")
+        cam = json.dumps(CAMERA)
+        loc = f"/v1/objects/{oid}/localize"
+        cases: list[tuple[httpx.Response, int, str | None]] = [
+            (upload_mesh(c, b"this is not a mesh at all", filename="x.stl"), 422, "mesh"),
+            (upload_mesh(c, b"\x00" * 10, filename="x.bin"), 422, "mesh"),
+            (upload_mesh(c, b"", filename="x.stl"), 422, "mesh"),
+            (upload_mesh(c, b"v 0 0 0\n" * 20000, filename="big.obj"), 413, "mesh"),
+            (c.post("/v1/objects", files={"mesh": ("b.stl", box_stl())},
+                    data={"spec": "{not json"}), 422, "spec"),
+            (c.post("/v1/objects", files={"mesh": ("b.stl", box_stl())},
+                    data={"spec": json.dumps({"units": "furlong"})}), 422, "spec.units"),
+            (c.post("/v1/objects", files={"mesh": ("b.stl", box_stl())},
+                    data={"spec": json.dumps({"colour": "red"})}), 422, "spec.colour"),
+            (c.post("/v1/objects", files={"spec": (None, "{}")}), 422, "mesh"),
+            (c.post("/v1/objects", data={"spec": "{}"}), 415, None),
+            (c.post("/v1/objects", json={"mesh": "abc"}), 415, None),
+            (c.post("/v1/objects", content=b"x" * 10, headers={"content-type": "text/plain"}),
+             415, None),
+            (c.post(loc, files={"image": ("s.png", b"GIF89a not an image", "image/gif")},
+                    data={"camera": cam}), 422, "image"),
+            (c.post(loc, files={"image": ("s.png", b"\x89PNG\r\n\x1a\n" + b"\x00" * 40)},
+                    data={"camera": cam}), 422, "image"),
+            (c.post(loc, files={"image": ("s.png", png(2000, 1000, noise=False), "image/png")},
+                    data={"camera": cam}), 422, "image"),
+            (c.post(loc, files={"image": image}, data={"camera": "{fx: 1"}), 422, "camera"),
+            (c.post(loc, files={"image": image},
+                    data={"camera": json.dumps({**CAMERA, "fx": -5})}), 422, "camera.fx"),
+            (c.post(loc, files={"image": image},
+                    data={"camera": json.dumps({"fy": 1, "cx": 1, "cy": 1})}), 422, "camera.fx"),
+            (c.post(loc, files={"image": image},
+                    data={"camera": json.dumps({**CAMERA, "dist": [0.1, 0.2, 0.3]})}),
+             422, "camera.dist"),
+            (c.post(loc, files={"image": image},
+                    data={"camera": cam, "options": json.dumps({"max_detections": 0})}),
+             422, "options.max_detections"),
+            (c.post(loc, files={"camera": (None, cam)}), 422, "image"),
+            (c.post(loc, files={"image": image}), 422, "camera"),
+            (c.post("/v1/objects/" + "0" * 32 + "/localize", files={"image": image},
+                    data={"camera": cam}), 404, None),
+            (c.post("/v1/objects/..%2F..%2Fetc/localize", files={"image": image},
+                    data={"camera": cam}), 404, None),
+            (c.get("/v1/objects/not-an-id"), 404, None),
+            (c.get("/v1/jobs/" + "f" * 32), 404, None),
+            (c.delete("/v1/jobs/xyz"), 404, None),
+            (c.post("/v1/localize", files={"image": image},
+                    data={"camera": cam, "options": json.dumps({"object_ids": ["nope"]})}),
+             404, None),
+            (c.post("/v1/objects/from-images",
+                    files=[("images", ("a.png", png(), "image/png"))],
+                    data={"spec": json.dumps({"camera": CAMERA, "object_diameter_mm": 10,
+                                              "views": []})}), 422, "spec.views"),
+            (c.post("/v1/objects/from-images",
+                    files=[("images", ("a.png", png(), "image/png")),
+                           ("masks", ("m.png", png(100, 100, 1), "image/png"))],
+                    data={"spec": json.dumps({"camera": CAMERA, "object_diameter_mm": 10,
+                                              "views": [{"azimuth_deg": 0, "polar_deg": 90,
+                                                         "distance_mm": 500}]})}),
+             422, "masks[0]"),
+            (c.post("/v1/objects/from-images",
+                    files=[("images", ("a.png", png(), "image/png"))] * 4,
+                    data={"spec": "{}"}), 413, "images"),
+            (c.post("/v1/objects/from-images",
+                    files=[("images", ("a.png", png(), "image/png"))],
+                    data={"spec": json.dumps({"camera": CAMERA, "object_diameter_mm": -1,
+                                              "views": [{"azimuth_deg": 0, "polar_deg": 90,
+                                                         "distance_mm": 500}]})}),
+             422, "spec.object_diameter_mm"),
+        ]
+        for i, (r, status, field) in enumerate(cases):
+            try:
+                assert_problem(r, status, field)
+            except AssertionError as exc:
+                raise AssertionError(f"case {i}: {exc}") from exc
+        # body far beyond the route limit: refused from Content-Length alone
+        r = c.post(loc, files={"image": ("big.png", b"\x89PNG" + b"\x00" * 1_500_000)},
+                   data={"camera": cam})
+        assert_problem(r, 413)
+        files_after = sorted(p.relative_to(tmp_path) for p in (tmp_path / "var").rglob("*")
+                             if p.is_file() and "sqlite" not in p.name)
+        assert files_after == files_before
+        assert [o["object_id"] for o in c.get("/v1/objects").json()["objects"]] == [oid]
+
+
+def test_api_keys(make_server: Callable[..., LiveServer]) -> None:
+    srv = make_server(api_keys="k-one, k-two")
+    with httpx.Client(base_url=srv.url, timeout=30) as c:
+        assert c.get("/healthz").status_code == 200
+        for path in ("/v1/objects", "/readyz", "/metrics", "/v1/jobs/" + "a" * 32):
+            body = assert_problem(c.get(path), 401)
+            assert "API key" in body["detail"]
+        r = c.get("/v1/objects", headers={"Authorization": "Bearer k-three"})
+        assert_problem(r, 401)
+        assert r.headers["www-authenticate"] == "Bearer"
+        assert_problem(c.get("/v1/objects", headers={"Authorization": "Basic k-one"}), 401)
+        for key in ("k-one", "k-two"):
+            r = c.get("/v1/objects", headers={"Authorization": f"Bearer {key}"})
+            assert r.status_code == 200 and r.json() == {"objects": []}
+
+
+def test_operations_metrics_request_id_and_openapi(make_server: Callable[..., LiveServer]) -> None:
+    srv = make_server()
+    with httpx.Client(base_url=srv.url, timeout=30) as c:
+        assert c.get("/readyz").json()["checks"] == {"store": True, "job_runner": True}
+        r = c.get("/v1/objects", headers={"X-Request-ID": "abc-123"})
+        assert r.headers["x-request-id"] == "abc-123"
+        assert len(c.get("/healthz").headers["x-request-id"]) == 32
+        c.get("/v1/objects/" + "0" * 32)
+        text = c.get("/metrics").text
+        assert 'viewloc_http_requests_total{method="GET",route="/v1/objects/{object_id}",' \
+               'status="404"} 1.0' in text
+        assert "viewloc_http_request_duration_seconds_bucket" in text
+        assert 'viewloc_jobs{state="queued"} 0.0' in text
+        assert "viewloc_localization_duration_seconds_count" in text
+        spec = c.get("/openapi.json").json()
+    validate(spec)
+    paths = spec["paths"]
+    for path in ("/v1/objects", "/v1/objects/from-images", "/v1/objects/{object_id}",
+                 "/v1/objects/{object_id}/localize", "/v1/localize", "/v1/jobs/{job_id}",
+                 "/healthz", "/readyz", "/metrics"):
+        assert path in paths, path
+    for path, item in paths.items():
+        for method, op in item.items():
+            for code, resp in op["responses"].items():
+                if int(code) >= 400:
+                    assert list(resp["content"]) == ["application/problem+json"], (path, code)
+            if path != "/healthz":
+                assert "401" in op["responses"], (path, method)
+    loc = paths["/v1/objects/{object_id}/localize"]["post"]["responses"]
+    assert {"404", "409", "413", "415", "422"} <= set(loc)
+    schemas = spec["components"]["schemas"]
+    assert {"Problem", "ObjectOut", "JobOut", "LocalizationOut", "DetectionOut"} <= set(schemas)
+
+
+def test_restart_while_a_job_runs_leaves_nothing_stuck(
+    tmp_path: Path, make_server: Callable[..., LiveServer]
+) -> None:
+    port = free_port()
+    root = tmp_path / "var"
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "tests.app.serve_for_test", "--port", str(port),
+         "--data-dir", str(root)], env=env, cwd=Path(__file__).resolve().parents[2])
+    try:
+        url = f"http://127.0.0.1:{port}"
+        deadline = time.monotonic() + 30
+        while True:
+            try:
+                if httpx.get(url + "/readyz").status_code == 200:
+                    break
+            except httpx.TransportError:
+                pass
+            assert time.monotonic() < deadline and proc.poll() is None
+            time.sleep(0.1)
+        with httpx.Client(base_url=url, timeout=30) as c:
+            created = upload_mesh(c).json()
+            job_id = created["job"]["job_id"]
+            deadline = time.monotonic() + 30
+            while c.get(f"/v1/jobs/{job_id}").json()["progress"] <= 0:
+                assert time.monotonic() < deadline
+                time.sleep(0.05)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert ModelStore(root).get_job(job_id).state == "running"  # as the dead service left it
+    srv = make_server(tasks=SLEEPY)
+    with httpx.Client(base_url=srv.url, timeout=30) as c:
+        job = wait_job(c, job_id)
+        assert job["state"] == "succeeded", job
+        assert ModelStore(root).get_job(job_id).attempts == 2
+
+
+@pytest.mark.parametrize("units", ["cm"])
+def test_units_scale_the_mesh(make_server: Callable[..., LiveServer], units: str) -> None:
+    srv = make_server(tasks=SLEEPY)
+    with httpx.Client(base_url=srv.url, timeout=30) as c:
+        r = c.post("/v1/objects", files={"mesh": ("b.stl", box_stl())},
+                   data={"spec": json.dumps({"units": units})})
+        assert r.status_code == 202
+        assert abs(r.json()["object"]["diameter_mm"] - 10 * (40**2 + 20**2 + 10**2) ** 0.5) < 1e-3
