@@ -19,6 +19,66 @@ def _serve(args: argparse.Namespace) -> int:
     return 0
 
 
+def _learn(args: argparse.Namespace) -> int:
+    import json
+    from pathlib import Path
+
+    from tqdm import tqdm
+
+    from model_store import save_model_dir
+    from viewloc_core.learn import LearningConfig, learn_from_mesh
+    from viewloc_core.mesh import load_mesh
+
+    os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+    mesh = load_mesh(Path(args.mesh), None, args.units)
+    config = LearningConfig.from_dict(json.loads(args.learning) if args.learning else {})
+    with tqdm(total=1000, unit="‰", desc="learning", leave=True) as bar:
+
+        def progress(stage: str, fraction: float) -> None:
+            bar.set_description(stage[:40])
+            bar.n = int(round(1000 * min(1.0, max(0.0, fraction))))
+            bar.refresh()
+
+        model = learn_from_mesh(mesh, config, progress=progress, rng=config.seed)
+        bar.n = 1000
+        bar.refresh()
+    digest = save_model_dir(Path(args.output), model)
+    print(json.dumps({"model_dir": str(args.output), "sha256": digest,
+                      "diameter_mm": float(model.diameter_mm),
+                      "training_views": int(model.training_views),
+                      "model_views": len(model.model_views)}))
+    return 0
+
+
+def _match(args: argparse.Namespace) -> int:
+    import json
+    from pathlib import Path
+
+    from app.imaging import decode_image
+    from app.serialize import detection_dict
+    from model_store import load_model_dir
+    from viewloc_core.camera import Camera
+    from viewloc_core.localize import LocalizeOptions, localize
+
+    text = args.camera
+    if not text.lstrip().startswith("{"):
+        text = Path(text).read_text()
+    cam = json.loads(text)
+    image = decode_image(Path(args.image).read_bytes(), "image", 1 << 31)
+    camera = Camera(float(cam["fx"]), float(cam["fy"]), float(cam["cx"]), float(cam["cy"]),
+                    image.shape[1], image.shape[0], tuple(cam.get("dist") or ()))
+    model = load_model_dir(Path(args.model_dir))
+    result = localize(model, image, camera, LocalizeOptions(
+        max_detections=args.max_detections, min_score=args.min_score,
+        refine=not args.no_refine))
+    print(json.dumps({
+        "image": {"width": image.shape[1], "height": image.shape[0]},
+        "detections": [detection_dict(d) for d in result.detections],
+        "timing_ms": dict(result.timing_ms),
+    }, indent=1))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser with one sub-command per verb."""
     parser = argparse.ArgumentParser(prog="viewloc", description=__doc__)
@@ -31,6 +91,23 @@ def build_parser() -> argparse.ArgumentParser:
         "--workers", type=int, default=int(os.environ.get("VIEWLOC_HTTP_WORKERS", "1"))
     )
     serve.set_defaults(func=_serve)
+
+    learn = sub.add_parser("learn", help="learn a model from a mesh file into a folder")
+    learn.add_argument("mesh", help="STL, OBJ, PLY, OFF, GLB or glTF file")
+    learn.add_argument("--units", default="mm", choices=["mm", "cm", "m", "in"])
+    learn.add_argument("-o", "--output", required=True, help="model folder to write")
+    learn.add_argument("--learning", default="", help="JSON of LearningConfig fields")
+    learn.set_defaults(func=_learn)
+
+    match = sub.add_parser("match", help="localize a learned model in an image")
+    match.add_argument("model_dir")
+    match.add_argument("image")
+    match.add_argument("--camera", required=True,
+                       help='JSON {"fx", "fy", "cx", "cy", "dist"} or a file holding it')
+    match.add_argument("--max-detections", type=int, default=1)
+    match.add_argument("--min-score", type=float, default=None)
+    match.add_argument("--no-refine", action="store_true")
+    match.set_defaults(func=_match)
     return parser
 
 

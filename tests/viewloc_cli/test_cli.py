@@ -1,0 +1,49 @@
+"""The command line: learn a mesh into a folder, match it in a rendered image."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.mark.slow
+def test_learn_then_match(tmp_path: Path) -> None:
+    from viewloc_core.camera import Camera
+    from viewloc_core.mesh import load_mesh
+    from viewloc_core.pose import Pose
+    from viewloc_core.render import Renderer
+
+    env = {**os.environ, "PYOPENGL_PLATFORM": "egl"}
+    mesh_path = ROOT / "viewloc_bench" / "assets" / "barbell.stl"
+    out = subprocess.run(
+        [sys.executable, "-m", "viewloc_cli", "learn", str(mesh_path), "--units", "mm",
+         "-o", str(tmp_path / "model"), "--learning", '{"max_level": 0, "min_level": 0}'],
+        capture_output=True, text=True, env=env, cwd=ROOT, timeout=180, check=True)
+    summary = json.loads(out.stdout.strip().splitlines()[-1])
+    assert summary["training_views"] == 12 and len(summary["sha256"]) == 64
+    assert "learning" in out.stderr or "%" in out.stderr or "‰" in out.stderr  # tqdm bar
+    cam = Camera(600.0, 600.0, 191.5, 143.5, 384, 288)
+    truth = Pose.from_euler_xyz_deg(np.array([90.0, 0.0, 0.0]), np.array([0.0, 0.0, 650.0]))
+    with Renderer() as r:
+        img = r.render(load_mesh(mesh_path), cam, truth, background_rgb=(40, 40, 40)).color
+    cv2.imwrite(str(tmp_path / "scene.png"), img[:, :, ::-1])
+    out = subprocess.run(
+        [sys.executable, "-m", "viewloc_cli", "match", str(tmp_path / "model"),
+         str(tmp_path / "scene.png"), "--camera",
+         json.dumps({"fx": 600, "fy": 600, "cx": 191.5, "cy": 143.5})],
+        capture_output=True, text=True, env=env, cwd=ROOT, timeout=180, check=True)
+    answer = json.loads(out.stdout)
+    assert answer["image"] == {"width": 384, "height": 288}
+    det = answer["detections"][0]
+    assert set(det) >= {"score", "log_probability", "model_view", "view", "similarity", "pose",
+                        "refined"}
+    assert abs(det["pose"]["t_mm"][2] - 650.0) < 0.1 * 650
