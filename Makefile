@@ -15,7 +15,7 @@ run: setup
 
 lint: setup
 	$(PY) -m ruff check .
-	$(PY) -m mypy viewloc_core model_store app viewloc_bench viewloc_cli
+	$(PY) -m mypy viewloc_core model_store app viewloc_bench viewloc_cli viewloc_client
 
 pytest: setup
 	$(PY) -m pytest -q $(PYTEST_ARGS)

@@ -29,6 +29,22 @@ def errors(*codes: int) -> dict[int | str, dict[str, Any]]:
     return out
 
 
+def _mark_binary(node: Any) -> None:
+    """Add ``format: binary`` beside OpenAPI 3.1's ``contentMediaType`` for uploads.
+
+    Client generators (openapi-python-client among them) recognise a file
+    part by ``format: binary``; without it they send the file as a text field.
+    """
+    if isinstance(node, dict):
+        if node.get("contentMediaType") == "application/octet-stream":
+            node["format"] = "binary"
+        for value in node.values():
+            _mark_binary(value)
+    elif isinstance(node, list):
+        for value in node:
+            _mark_binary(value)
+
+
 def install_openapi(app: FastAPI) -> None:
     """Serve error answers as application/problem+json in the document.
 
@@ -55,6 +71,7 @@ def install_openapi(app: FastAPI) -> None:
                         if int(code) == 422:
                             resp["description"] = _DESCRIPTIONS[422]
         comps = schema.get("components", {}).get("schemas", {})
+        _mark_binary(comps)
         for unused in ("HTTPValidationError", "ValidationError"):
             comps.pop(unused, None)
         app.openapi_schema = schema
