@@ -254,13 +254,13 @@ class PreparedMesh:
         The source mesh (mm, object frame).
     material : Material or None
         The material baked in; ``None`` means the mesh's own colours.
-    positions : (3F, 3) float32
-        Corner positions, object frame, mm.
-    normals : (3F, 3) float32
+    positions : (3F, 3) or (6F, 3) float32
+        Corner positions, object frame, mm (see ``double_sided``).
+    normals : same shape, float32
         Unit corner normals, object frame.
-    colours_linear : (3F, 4) float32 or None
+    colours_linear : (3F or 6F, 4) float32 or None
         Linear RGBA vertex colours (multiply the lit colour), if any.
-    texcoords : (3F, 2) float32 or None
+    texcoords : (3F or 6F, 2) float32 or None
         UVs for ``texture``, if any.
     texture : (h, w, 3 or 4) uint8 or None
         Base colour texture (sRGB), if any.
@@ -272,6 +272,13 @@ class PreparedMesh:
         Centre of a sphere bounding the mesh, object frame, mm.
     radius_mm : float
         Radius of that sphere.
+    double_sided : bool
+        True when the arrays hold every triangle twice, the second copy with
+        reversed winding and normals, so its back side is drawn and lit too.
+        Closed, consistently and outward wound meshes never show a back face
+        and get one copy; back faces are always culled, which halves the
+        shading work (the dominant cost with Mesa's llvmpipe) and keeps
+        depth-only renders (where pyrender always culls) equal to colour ones.
     """
 
     mesh: trimesh.Trimesh
@@ -286,6 +293,7 @@ class PreparedMesh:
     roughness: float
     centre_obj: NDArray[np.float64]
     radius_mm: float
+    double_sided: bool
 
 
 # ---------------------------------------------------------------------------
@@ -339,12 +347,26 @@ def prepare(
     lo, hi = vertices.min(axis=0), vertices.max(axis=0)
     centre = (lo + hi) / 2.0
     radius = float(np.sqrt(np.max(np.sum((vertices - centre) ** 2, axis=1))))
+    closed = bool(mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0)
+    if not closed:
+        positions = np.concatenate([positions, _reverse_corners(positions)])
+        normals = np.concatenate([normals, -_reverse_corners(normals)])
+        if colours is not None:
+            colours = np.concatenate([colours, _reverse_corners(colours)])
+        if texcoords is not None:
+            texcoords = np.concatenate([texcoords, _reverse_corners(texcoords)])
     return PreparedMesh(
         mesh=mesh, material=material, positions=positions, normals=normals,
         colours_linear=colours, texcoords=texcoords, texture=texture,
         base_colour_linear=base, metallic=chosen.metallic, roughness=chosen.roughness,
-        centre_obj=centre, radius_mm=radius,
+        centre_obj=centre, radius_mm=radius, double_sided=not closed,
     )
+
+
+def _reverse_corners(corners: NDArray[np.float32]) -> NDArray[np.float32]:
+    """Per-corner arrays (3F, k) with each triangle's corner order reversed."""
+    k = corners.shape[1]
+    return np.ascontiguousarray(corners.reshape(-1, 3, k)[:, ::-1, :].reshape(-1, k))
 
 
 def _corner_normals(
@@ -814,6 +836,7 @@ def _with_material(prepared: PreparedMesh, material: Material) -> PreparedMesh:
         normals=prepared.normals, colours_linear=None, texcoords=None, texture=None,
         base_colour_linear=base, metallic=material.metallic, roughness=material.roughness,
         centre_obj=prepared.centre_obj, radius_mm=prepared.radius_mm,
+        double_sided=prepared.double_sided,
     )
 
 
@@ -825,9 +848,8 @@ def _to_pyrender(prepared: PreparedMesh) -> pyrender.Mesh:
         roughnessFactor=prepared.roughness,
         baseColorTexture=prepared.texture,
         alphaMode="OPAQUE",
-        # Drawn from both sides: scanned or badly wound meshes would show
-        # holes where back-face culling drops their faces.
-        doubleSided=True,
+        # Back faces are culled; open meshes carry reversed copies instead.
+        doubleSided=False,
     )
     primitive = pyrender.Primitive(
         positions=prepared.positions,

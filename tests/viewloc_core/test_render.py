@@ -167,6 +167,23 @@ def test_prepared_normals_are_sharp_at_creases_and_smooth_on_curves():
     assert np.min(np.einsum("ij,ij->i", sphere.normals, radial)) > 0.999
 
 
+def test_open_meshes_are_drawn_from_both_sides(renderer):
+    closed = trimesh.creation.box(extents=(40.0, 40.0, 40.0))
+    assert not prepare(closed).double_sided
+    facing_camera = np.flatnonzero(closed.face_normals[:, 2] < -0.5)
+    keep = np.setdiff1d(np.arange(len(closed.faces)), facing_camera)
+    open_box = trimesh.Trimesh(closed.vertices, closed.faces[keep], process=False)
+    prepared = prepare(open_box)
+    assert prepared.double_sided
+    out = renderer.render_depth(prepared, CAMERA, Pose(np.eye(3), np.array([0.0, 0.0, 500.0])))
+    # Looking into the opening: the inside of the far wall, whose outward
+    # normal points away from the camera.
+    assert out.depth_mm[252, 300] == pytest.approx(520.0, abs=0.5)
+    shaded = renderer.render(prepared, CAMERA, Pose(np.eye(3), np.array([0.0, 0.0, 500.0])))
+    np.testing.assert_array_equal(shaded.mask, out.mask)
+    assert shaded.color[252, 300].max() > 0
+
+
 def test_object_behind_the_camera_renders_empty(renderer):
     box = prepare(trimesh.creation.box(extents=(10.0, 10.0, 10.0)))
     out = renderer.render(box, CAMERA, Pose(np.eye(3), np.array([0.0, 0.0, -100.0])),
