@@ -347,7 +347,9 @@ def prepare(
     lo, hi = vertices.min(axis=0), vertices.max(axis=0)
     centre = (lo + hi) / 2.0
     radius = float(np.sqrt(np.max(np.sum((vertices - centre) ** 2, axis=1))))
-    closed = bool(mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0)
+    # Seams of UVs or colours split vertices; closedness is about positions.
+    welded = trimesh.Trimesh(vertices, faces, process=True)
+    closed = bool(welded.is_watertight and welded.is_winding_consistent and welded.volume > 0)
     if not closed:
         positions = np.concatenate([positions, _reverse_corners(positions)])
         normals = np.concatenate([normals, -_reverse_corners(normals)])

@@ -8,11 +8,13 @@ import threading
 import numpy as np
 import pytest
 import trimesh
+from PIL import Image
 from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
 from viewloc_core.camera import Camera
 from viewloc_core.errors import InvalidInputError
+from viewloc_core.mesh import load_mesh
 from viewloc_core.pose import Pose
 from viewloc_core.render import (
     Light,
@@ -156,6 +158,25 @@ def test_colours_materials_and_lights_change_the_image(renderer):
     lit = renderer.render(prepared, CAMERA, pose,
                           lights=[Light("point", position_cam_mm=(0.0, 0.0, 0.0), intensity=3.0)])
     assert lit.color[lit.mask].mean() > dark.color[dark.mask].mean() + 20
+
+
+def test_texture_from_glb_is_drawn_unmirrored(renderer):
+    box = trimesh.creation.box(extents=(40.0, 40.0, 40.0))
+    box.unmerge_vertices()
+    image = np.zeros((8, 8, 3), dtype=np.uint8)
+    image[:, :4] = (255, 0, 0)  # u < 0.5: red
+    image[:, 4:] = (0, 0, 255)  # u > 0.5: blue
+    uv = np.stack([np.where(box.vertices[:, 0] > 0, 0.95, 0.05), np.full(len(box.vertices), 0.5)],
+                  axis=1)
+    box.visual = trimesh.visual.TextureVisuals(uv=uv, image=Image.fromarray(image))
+    loaded = load_mesh(box.export(file_type="glb"), file_type="glb")
+    prepared = prepare(loaded)
+    assert prepared.texture is not None and not prepared.double_sided
+    out = renderer.render(prepared, CAMERA, Pose(np.eye(3), np.array([0.0, 0.0, 400.0])),
+                          lights=FLAT)
+    # Object -x (red) appears left of the principal point, +x (blue) right.
+    left, right = out.color[252, 300 - 25].astype(int), out.color[252, 300 + 25].astype(int)
+    assert left[0] > left[2] + 100 and right[2] > right[0] + 100
 
 
 def test_prepared_normals_are_sharp_at_creases_and_smooth_on_curves():
