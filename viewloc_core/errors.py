@@ -45,5 +45,5 @@ class ModelFormatError(ViewlocError):
     """A stored model file is corrupt or has an unknown schema version."""
 
 
-class Cancelled(ViewlocError):
+class Cancelled(ViewlocError):  # noqa: N818  (a state, not a fault: "learning was Cancelled")
     """A long computation was asked to stop (``should_stop()`` returned True)."""

@@ -227,9 +227,8 @@ def extract_features(
     """
     grey = to_grey_float(image)
     h, w = grey.shape
-    smooth = cv2.GaussianBlur(grey, (0, 0), 1.0)
-    gx = cv2.Sobel(smooth, cv2.CV_32F, 1, 0, ksize=3)
-    gy = cv2.Sobel(smooth, cv2.CV_32F, 0, 1, ksize=3)
+    smooth = np.asarray(cv2.GaussianBlur(grey, (0, 0), 1.0), np.float32)
+    gx, gy = _gradient(image, smooth)
     mag = cv2.magnitude(gx, gy)
     # A strided sample is plenty for a percentile and four times cheaper.
     ref = float(np.percentile(mag[::2, ::2], 98.0))
@@ -271,6 +270,29 @@ def extract_features(
         dist = np.full((h, w), np.inf, np.float32)
         nearest = np.full((h, w), -1, np.int32)
     return ImageFeatures(edge_xy, edge_theta, segments, grouped, bits, nearest, dist, (h, w))
+
+
+def _gradient(image: NDArray[np.generic], smooth_grey: F32) -> tuple[F32, F32]:
+    """Image gradient; for colour, per pixel that of the channel where it is largest.
+
+    Taking the strongest channel (as LINE-MOD does) keeps edges between
+    colours of equal brightness, which any single grey conversion loses.
+    """
+    arr = np.asarray(image)
+    if arr.ndim == 3 and arr.shape[2] >= 3:
+        scale = 1.0 / (255.0 if arr.dtype == np.uint8 else 65535.0)
+        colour = cv2.GaussianBlur(arr[:, :, :3].astype(np.float32) * scale, (0, 0), 1.0)
+        gx3 = cv2.Sobel(colour, cv2.CV_32F, 1, 0, ksize=3)
+        gy3 = cv2.Sobel(colour, cv2.CV_32F, 0, 1, ksize=3)
+        best = np.argmax(gx3 * gx3 + gy3 * gy3, axis=2)[:, :, None]
+        return (
+            np.asarray(np.take_along_axis(gx3, best, axis=2)[:, :, 0], np.float32),
+            np.asarray(np.take_along_axis(gy3, best, axis=2)[:, :, 0], np.float32),
+        )
+    return (
+        np.asarray(cv2.Sobel(smooth_grey, cv2.CV_32F, 1, 0, ksize=3), np.float32),
+        np.asarray(cv2.Sobel(smooth_grey, cv2.CV_32F, 0, 1, ksize=3), np.float32),
+    )
 
 
 def orientation_bin(theta: NDArray[np.floating]) -> NDArray[np.int64]:
@@ -459,7 +481,9 @@ def _parallel_pairs(seg: F32, config: FeatureConfig) -> _Parts:
     length = np.linalg.norm(d, axis=1)
     u = d / length[:, None]
     ang = np.mod(np.arctan2(u[:, 1], u[:, 0]), np.pi)
-    radius = float(length.max())
+    # Midpoints of a valid pair are at most (separation + length) apart, and
+    # the separation is limited to twice the longer segment below.
+    radius = 2.5 * float(length.max())
     pairs = cKDTree(mid).query_pairs(radius, output_type="ndarray")
     if len(pairs) == 0:
         return _no_parts()

@@ -27,7 +27,15 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from viewloc_core import similarity as sim2
-from viewloc_core.align import AlignConfig, _spread_subset, align, build_index, coverage
+from viewloc_core.align import (
+    AlignConfig,
+    ModelIndex,
+    _spread_subset,
+    align,
+    build_index,
+    coverage,
+    extend,
+)
 from viewloc_core.camera import Camera
 from viewloc_core.errors import Cancelled, InvalidInputError
 from viewloc_core.features import (
@@ -94,7 +102,7 @@ class LearningConfig:
     edge_samples: int = 160
     min_presence: float = 0.25
     prune_after: int = 4
-    candidates: int = 6
+    candidates: int = 4
     join_min_fit: float = 0.7
     seed: int = 0
 
@@ -184,6 +192,8 @@ class _Cluster:
     n_members: int
     edge_xy: NDArray[np.float64]
     edge_theta: NDArray[np.float64]
+    # Alignment index of the cluster as a one-view model; rebuilt after updates.
+    index: tuple[ObjectModel, ModelIndex] | None = None
 
     def frozen(self) -> ModelView:
         return ModelView(
@@ -321,8 +331,11 @@ def _align_to_cluster(
     cluster: _Cluster, sample: _ViewSample, config: AlignConfig
 ) -> NDArray[np.float64] | None:
     """Similarity cluster frame -> sample image pixels, or None if they do not align."""
-    model = _single_view_model(cluster)
-    matches = align(model, build_index(model), sample.feats, config, max_matches=1)
+    if cluster.index is None:
+        model = _single_view_model(cluster)
+        cluster.index = (model, build_index(model))
+    model, index = cluster.index
+    matches = align(model, index, sample.feats, config, max_matches=1)
     return matches[0].sim.copy() if matches else None
 
 
@@ -341,6 +354,7 @@ def _update_cluster(cluster: _Cluster, sample: _ViewSample, sim_t2m: NDArray[np.
                     config: LearningConfig) -> None:
     ci, si, mapped = _pair_features(cluster, sample, sim_t2m)
     n = cluster.n_members
+    cluster.index = None
     if len(ci):
         w_old = cluster.count[ci]
         new_count = w_old + 1.0
@@ -383,7 +397,10 @@ class _Clusterer:
         self.config = config
         # Training images are square; their centre is the model-view origin.
         self._centre = centre_px
-        self.align_config = AlignConfig(min_scale=0.8, max_scale=1.25, max_hypotheses=4)
+        self.align_config = AlignConfig(
+            min_scale=0.8, max_scale=1.25, max_scored=6, max_hypotheses=2,
+            icp_radii_px=(6.0, 3.0, 1.5),
+        )
         self.clusters: list[_Cluster] = []
         self.member_of: list[int] = []
         self.sim_to_model: list[NDArray[np.float64]] = []
@@ -394,7 +411,7 @@ class _Clusterer:
         dl_new = _description_length_new(sample)
         for c in self._candidates(direction):
             cluster = self.clusters[c]
-            sim_m2img = _align_to_cluster(cluster, sample, self.align_config)
+            sim_m2img = self._align(cluster, sample)
             if sim_m2img is None:
                 continue
             # align() reports cluster frame -> sample image pixels; the sample's
@@ -423,6 +440,21 @@ class _Clusterer:
             self.member_of.append(c)
             self.sim_to_model.append(sim_t2m)
         self.directions.append(direction)
+
+    def _align(self, cluster: _Cluster, sample: _ViewSample) -> NDArray[np.float64] | None:
+        """Similarity cluster frame -> sample image pixels, or None.
+
+        Neighbouring views usually differ by little more than the identity,
+        so that is tried first (one extension); the full probabilistic
+        alignment runs only when it does not fit (symmetric or rotated views).
+        """
+        start = np.array([self._centre, self._centre, 0.0, 1.0])
+        theta = cluster.edge_theta
+        fitted = extend(sample.feats, start, cluster.edge_xy, theta, self.align_config)
+        bins = orientation_bin(theta)
+        if coverage(sample.feats, fitted, cluster.edge_xy, bins) >= self.config.join_min_fit:
+            return fitted
+        return _align_to_cluster(cluster, sample, self.align_config)
 
     def _candidates(self, direction: NDArray[np.float64]) -> list[int]:
         """Model views to try: those whose members look from the nearest directions."""

@@ -25,7 +25,7 @@ from viewloc_core.align import (
     align,
     build_index,
     coverage,
-    extend,
+    refine_at_model_scale,
 )
 from viewloc_core.camera import Camera
 from viewloc_core.detection import Detection
@@ -85,12 +85,14 @@ def model_index(model: ObjectModel) -> ModelIndex:
 
 
 def _best_training_view(
-    model: ObjectModel, match: Match2D, feats: ImageFeatures, config: AlignConfig
+    model: ObjectModel, match: Match2D, feats: ImageFeatures, image: NDArray[np.generic],
+    radius_px: float,
 ) -> tuple[int, NDArray[np.float64], float]:
     """Member training view of the matched model view that fits the image best.
 
     Returns the training view index, the similarity training-view frame ->
-    image (re-fitted on that view's own edge samples) and its coverage.
+    image (re-fitted on that view's own edge samples, at training scale) and
+    its coverage.
     """
     tr = model.training
     members = np.flatnonzero(tr.model_view == match.model_view)
@@ -104,10 +106,10 @@ def _best_training_view(
     _, t_best, sim_best = best
     pts = tr.edge_xy[t_best].astype(np.float64)
     theta = tr.edge_theta[t_best].astype(np.float64)
-    fine = AlignConfig(icp_radii_px=(3.0, 2.0, 1.5, 1.0))
-    refit = extend(feats, sim_best, pts, theta, fine)
-    cov = coverage(feats, refit, pts, orientation_bin(theta))
-    del config
+    refit, crop_feats, crop_from_image = refine_at_model_scale(
+        image, sim_best, pts, theta, radius_px
+    )
+    cov = coverage(crop_feats, sim2.compose(crop_from_image, refit), pts, orientation_bin(theta))
     return t_best, refit, cov
 
 
@@ -162,7 +164,9 @@ def localize(
     min_score = model.default_min_score if options.min_score is None else options.min_score
     detections: list[Detection] = []
     for match in matches:
-        t_view, sim_level, cov = _best_training_view(model, match, feats, config)
+        t_view, sim_level, cov = _best_training_view(
+            model, match, feats, level, index.view_radius_px
+        )
         sim_full = sim_level.copy()
         if factor < 1.0:
             sim_full[:2] = (sim_level[:2] + 0.5) / factor - 0.5

@@ -1,0 +1,69 @@
+"""Shared fixtures for the engine tests: small meshes and one learned model."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from viewloc_core.camera import Camera
+from viewloc_core.learn import LearningConfig, learn_from_mesh
+from viewloc_core.model import ObjectModel
+from viewloc_core.pose import Pose
+from viewloc_core.render import Light, Renderer, prepare
+
+
+def l_bracket() -> trimesh.Trimesh:
+    """An asymmetric part (a plate, an upright and a rib), mm, origin off-centre."""
+    plate = trimesh.creation.box((100.0, 60.0, 8.0))
+    plate.apply_translation([0.0, 0.0, 4.0])
+    upright = trimesh.creation.box((8.0, 60.0, 70.0))
+    upright.apply_translation([-46.0, 0.0, 35.0])
+    rib = trimesh.creation.box((40.0, 6.0, 40.0))
+    rib.apply_translation([-30.0, 10.0, 20.0])
+    return trimesh.util.concatenate([plate, upright, rib])
+
+
+@pytest.fixture(scope="session")
+def bracket_mesh() -> trimesh.Trimesh:
+    return l_bracket()
+
+
+@pytest.fixture(scope="session")
+def bracket_model(bracket_mesh: trimesh.Trimesh) -> ObjectModel:
+    # Level 1 (42 views) keeps the suite fast; the bench uses the defaults.
+    return learn_from_mesh(bracket_mesh, LearningConfig(max_level=1, min_level=1))
+
+
+@pytest.fixture(scope="session")
+def renderer():
+    with Renderer() as r:
+        yield r
+
+
+def render_scene(
+    renderer: Renderer,
+    mesh: trimesh.Trimesh,
+    camera: Camera,
+    pose: Pose,
+    clutter: int = 0,
+    rng: np.random.Generator | int | None = 0,
+) -> np.ndarray:
+    """Colour image of ``mesh`` at ``pose`` with ``clutter`` random boxes behind/around it."""
+    gen = np.random.default_rng(rng)
+    items = [(prepare(mesh), pose)]
+    for _ in range(clutter):
+        box = trimesh.creation.box(gen.uniform([15, 10, 10], [120, 30, 30]))
+        R = trimesh.transformations.random_rotation_matrix(gen.random(3))[:3, :3]
+        uv = gen.uniform([0, 0], [camera.width, camera.height])
+        z = gen.uniform(pose.t_m2c[2] + 50, pose.t_m2c[2] + 500)
+        t = z * np.array([(uv[0] - camera.cx) / camera.fx, (uv[1] - camera.cy) / camera.fy, 1])
+        items.append((prepare(box), Pose(R, t)))
+    # Two lights from different sides so faces differ in brightness, as on
+    # a lit inspection table.
+    lights = [
+        Light("directional", direction_cam=(0.6, 0.5, 1.0), intensity=3.0),
+        Light("directional", direction_cam=(-0.7, -0.2, 0.6), intensity=1.2),
+        Light("ambient", intensity=0.2),
+    ]
+    return renderer.render_scene(items, camera, lights=lights, background_rgb=(40, 40, 40)).color

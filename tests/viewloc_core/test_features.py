@@ -1,0 +1,95 @@
+"""Feature extraction: kinds, invariance to brightness and bit depth, geometry."""
+
+import cv2
+import numpy as np
+import pytest
+
+from viewloc_core.errors import InvalidImageError
+from viewloc_core.features import (
+    KIND_JUNCTION,
+    KIND_PARALLEL,
+    extract_features,
+    orientation_bin,
+)
+
+
+def _square_image(value: int = 200, background: int = 30) -> np.ndarray:
+    img = np.full((200, 240), background, np.uint8)
+    cv2.rectangle(img, (60, 50), (170, 140), value, thickness=-1)
+    return img
+
+
+def test_square_gives_four_right_angle_junctions():
+    feats = extract_features(_square_image())
+    g = feats.grouped
+    junctions = g.select(g.kind == KIND_JUNCTION)
+    corners = np.array([[60, 50], [170, 50], [170, 140], [60, 140]], float)
+    for corner in corners:
+        d = np.linalg.norm(junctions.xy - corner, axis=1)
+        assert d.min() < 3.0, corner
+        near = d < 3.0
+        assert np.all(np.abs(junctions.attrs[near, 0] - np.pi / 2) < np.radians(8))
+    # Opposite sides of the square pair up as parallels.
+    assert np.count_nonzero(g.kind == KIND_PARALLEL) >= 2
+
+
+def test_edges_do_not_depend_on_brightness_polarity_or_bit_depth():
+    bright = extract_features(_square_image(200, 30))
+    dark = extract_features(_square_image(30, 200))
+    deep = extract_features(_square_image(200, 30).astype(np.uint16) * 257)
+    dim = extract_features((_square_image(200, 30) // 8).astype(np.uint8))
+    for other in (dark, deep, dim):
+        assert abs(len(other.edge_xy) - len(bright.edge_xy)) <= 0.05 * len(bright.edge_xy)
+        assert abs(len(other.grouped) - len(bright.grouped)) <= 2
+
+
+def test_colour_edges_between_equal_luminance_colours_are_found():
+    img = np.zeros((120, 160, 3), np.uint8)
+    img[:, :80] = (200, 0, 0)
+    img[:, 80:] = (0, 0, 200)
+    feats = extract_features(img)
+    assert len(feats.edge_xy) > 50
+    # The edge is vertical: tangent orientation about π/2.
+    assert np.median(np.abs(feats.edge_theta - np.pi / 2)) < 0.1
+
+
+def test_junctions_rotate_with_the_image():
+    img = _square_image()
+    M = cv2.getRotationMatrix2D((120, 100), 30.0, 1.0)  # counter-clockwise on screen
+    rotated = cv2.warpAffine(img, M, (240, 200), flags=cv2.INTER_LINEAR, borderValue=30)
+    a = extract_features(img).grouped
+    b = extract_features(rotated).grouped
+    ja, jb = a.select(a.kind == KIND_JUNCTION), b.select(b.kind == KIND_JUNCTION)
+    # A screen-counter-clockwise turn is a negative angle in y-down pixels.
+    expected = np.mod(ja.theta - np.radians(30.0), 2 * np.pi)
+    for th in expected:
+        d = np.abs(np.mod(jb.theta - th + np.pi, 2 * np.pi) - np.pi)
+        assert d.min() < np.radians(6)
+
+
+def test_spread_orientation_map_marks_edge_neighbourhood():
+    feats = extract_features(_square_image())
+    horizontal = (1 << int(orientation_bin(np.array([0.0]))[0])) | (1 << 15)
+    # Top side of the square (horizontal edge) at y = 49..50, spread by 2 px.
+    assert feats.orientation_bits[48, 110] & horizontal
+    assert feats.orientation_bits[51, 110] & horizontal
+    assert feats.orientation_bits[100, 110] == 0
+
+
+def test_nearest_edge_lookup():
+    feats = extract_features(_square_image())
+    found, idx = feats.nearest_edges(np.array([[110.0, 47.0], [110.0, 100.0]]), 4.0)
+    assert found.tolist() == [True, False]
+    assert abs(feats.edge_xy[idx[0], 1] - 50) <= 1.5
+
+
+@pytest.mark.parametrize("bad", [np.zeros((8, 8), np.uint8), np.zeros((50, 50, 2), np.uint8),
+                                 np.zeros((50, 50), np.int32)])
+def test_rejects_unusable_images(bad):
+    with pytest.raises(InvalidImageError):
+        extract_features(bad)
+
+
+def test_blank_image_has_no_features():
+    feats = extract_features(np.full((64, 64), 128, np.uint8))
+    assert len(feats.edge_xy) == 0 and len(feats.grouped) == 0
