@@ -67,6 +67,9 @@ if TYPE_CHECKING:
 #: Dihedral angle (deg) above which an edge is drawn as a sharp crease.
 CREASE_ANGLE_DEG = 30.0
 
+#: Largest image side rendered (llvmpipe's framebuffer limit is 16384).
+MAX_IMAGE_SIDE = 8192
+
 #: Point-light intensities are given at this distance (mm); see :class:`Light`.
 POINT_LIGHT_REFERENCE_MM = 1000.0
 
@@ -759,6 +762,11 @@ class Renderer:
             raise InvalidInputError("background_rgb must be three values in 0..255",
                                     "background_rgb")
         H, W = camera.height, camera.width
+        if max(H, W) > MAX_IMAGE_SIDE:
+            raise InvalidInputError(
+                f"cannot render {W}x{H}: the largest side is {MAX_IMAGE_SIDE} pixels",
+                "camera.width",
+            )
         clip = _clip_range(items)
         if clip is None:  # everything is behind the camera
             empty_color = None if depth_only else np.empty((H, W, 3), dtype=np.uint8)

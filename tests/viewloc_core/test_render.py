@@ -239,6 +239,11 @@ def test_values_validate_their_fields(renderer):
     assert info.value.field == "light.direction_cam"
     with pytest.raises(InvalidInputError):
         renderer.render("not a mesh", CAMERA, Pose.identity())  # type: ignore[arg-type]
+    box = prepare(trimesh.creation.box(extents=(10.0, 10.0, 10.0)))
+    with pytest.raises(InvalidInputError) as info:
+        renderer.render_depth(box, Camera(500.0, 500.0, 5000.0, 10.0, 10000, 20),
+                              Pose(np.eye(3), np.array([0.0, 0.0, 300.0])))
+    assert info.value.field == "camera.width"
 
 
 def test_renderer_refuses_other_threads(renderer):
