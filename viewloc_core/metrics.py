@@ -173,9 +173,7 @@ def g_from_deltas(dz_mm: float, dxy_mm: float, dalpha_deg: float) -> float:
     return float(max(0.0, 1.0 - (F_Z * dz_mm**2 + F_XY * dxy_mm**2 + F_ALPHA * dalpha_deg**2)))
 
 
-def g_paper(
-    pose_est: Pose, pose_gt: Pose, symmetries: NDArray[np.floating] | None = None
-) -> float:
+def g_paper(pose_est: Pose, pose_gt: Pose, symmetries: NDArray[np.floating] | None = None) -> float:
     """Localization accuracy g(L, T) of the paper (§5.1, Eq. 3), symmetry-aware.
 
     Parameters
@@ -326,9 +324,7 @@ def image_diameter_px(camera: Camera, pose_gt: Pose, diameter_mm: float) -> floa
     return float(camera.focal_px * diameter_mm / pose_gt.t_m2c[2])
 
 
-def reference_point_error_px(
-    xy_est: NDArray[np.floating], camera: Camera, pose_gt: Pose
-) -> float:
+def reference_point_error_px(xy_est: NDArray[np.floating], camera: Camera, pose_gt: Pose) -> float:
     """Distance (px) between an estimated origin position and the true projected origin."""
     uv_gt = camera.project(pose_gt.t_m2c[None])[0]
     return float(np.linalg.norm(np.asarray(xy_est, dtype=np.float64).reshape(2) - uv_gt))

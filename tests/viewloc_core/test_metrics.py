@@ -9,9 +9,7 @@ from viewloc_core.camera import Camera
 from viewloc_core.errors import InvalidInputError
 from viewloc_core.pose import Pose, rot_z
 
-CUBE = np.array(
-    [[x, y, z] for x in (-10.0, 10.0) for y in (-10.0, 10.0) for z in (-10.0, 10.0)]
-)
+CUBE = np.array([[x, y, z] for x in (-10.0, 10.0) for y in (-10.0, 10.0) for z in (-10.0, 10.0)])
 
 
 def rot(axis: str, deg: float) -> np.ndarray:
