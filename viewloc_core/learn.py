@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, fields, replace
 from typing import Any
 
 import cv2
@@ -534,6 +534,7 @@ def learn_from_mesh(
     -------
     ObjectModel
     """
+    from viewloc_core.contour_model import build_contour_model
     from viewloc_core.mesh import mesh_diameter_mm
     from viewloc_core.render import Renderer, prepare, random_lights
 
@@ -578,10 +579,17 @@ def learn_from_mesh(
             samples.append(sample)
             angles.append((view.azimuth_deg, view.polar_deg))
             level_counts[view.level] = len(clusterer.clusters)
+        if progress is not None:
+            progress("building contour model", 0.99)
+        # 3D contour points per training direction, in the centred frame the
+        # poses are computed in, for the pose refinement (§5.2).
+        used = np.array([v.direction for v in directions[: len(rotations)]])
+        contour = build_contour_model(centred, used, renderer, d0, f, (size, size))
     if progress is not None:
         progress("finishing", 1.0)
-    return _finish(clusterer, rotations, samples, angles, "mesh", diameter, d0, f, size,
-                   centre, config, mesh)
+    model = _finish(clusterer, rotations, samples, angles, "mesh", diameter, d0, f, size,
+                    centre, config, mesh)
+    return replace(model, contour=contour.to_arrays())
 
 
 def learn_from_images(

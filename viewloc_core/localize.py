@@ -28,12 +28,14 @@ from viewloc_core.align import (
     refine_at_model_scale,
 )
 from viewloc_core.camera import Camera
+from viewloc_core.contour_model import ContourModel
 from viewloc_core.detection import Detection
 from viewloc_core.errors import InvalidInputError
 from viewloc_core.features import ImageFeatures, extract_features, orientation_bin, to_grey_float
 from viewloc_core.model import ObjectModel
 from viewloc_core.pose import Pose
 from viewloc_core.pose_from_match import pose_from_similarity
+from viewloc_core.refine import EdgePyramid, prepare_edges, refine_pose
 
 #: Images larger than this (longest side, px) are searched on a pyramid level.
 MAX_SEARCH_SIDE_PX = 700
@@ -82,6 +84,22 @@ def model_index(model: ObjectModel) -> ModelIndex:
         index = build_index(model)
         _INDEX_CACHE[model] = index
     return index
+
+
+_CONTOUR_CACHE: weakref.WeakKeyDictionary[ObjectModel, ContourModel] = (
+    weakref.WeakKeyDictionary()
+)
+
+
+def _contour_model(model: ObjectModel) -> ContourModel | None:
+    """The model's contour model for refinement (None without a mesh), cached."""
+    if model.contour is None:
+        return None
+    contour = _CONTOUR_CACHE.get(model)
+    if contour is None:
+        contour = ContourModel.from_arrays(model.contour)
+        _CONTOUR_CACHE[model] = contour
+    return contour
 
 
 def _best_training_view(
@@ -163,6 +181,7 @@ def localize(
 
     min_score = model.default_min_score if options.min_score is None else options.min_score
     detections: list[Detection] = []
+    edges: EdgePyramid | None = None
     for match in matches:
         t_view, sim_level, cov = _best_training_view(
             model, match, feats, level, index.view_radius_px
@@ -176,12 +195,29 @@ def localize(
         pose_centred = pose_from_similarity(
             similarity, R_view, model.d0_mm, model.f_train_px, camera
         )
+        refined = False
+        pose_std = None
+        score = float(cov)
+        contour = _contour_model(model) if options.refine else None
+        if contour is not None:
+            if edges is None:
+                edges = prepare_edges(arr)
+            result = refine_pose(edges, camera, pose_centred, contour)
+            moved = np.linalg.norm(result.pose.t_m2c - pose_centred.t_m2c)
+            # Accept only a fit that converged on most of the contour and did
+            # not wander off (a wrong 2D match cannot be rescued here).
+            fits = result.converged or result.mean_residual_px < 1.0
+            if (fits and result.inlier_fraction >= 0.6
+                    and moved < 0.25 * model.diameter_mm + 0.05 * pose_centred.t_m2c[2]):
+                pose_centred = result.pose
+                refined = True
+                pose_std = result.pose_std
+            score = 0.5 * (float(cov) + float(result.inlier_fraction))
         # The model was learned with the bounding-box centre as origin.
         pose = Pose(
             pose_centred.R_m2c,
             pose_centred.t_m2c - pose_centred.R_m2c @ model.origin_offset_mm,
         )
-        score = float(cov)
         if score < min_score:
             continue
         detections.append(
@@ -193,7 +229,8 @@ def localize(
                 polar_deg=float(model.training.polar_deg[t_view]),
                 similarity=similarity,
                 pose=pose,
-                refined=False,
+                refined=refined,
+                pose_std=pose_std,
             )
         )
     detections.sort(key=lambda d: -d.score)

@@ -1,7 +1,6 @@
 """POV-Ray camera geometry: projection to 0.5 px and no mirroring (IoU with pyrender)."""
 
 import numpy as np
-import pyrender
 import pytest
 from scipy.spatial.transform import Rotation
 
@@ -44,20 +43,13 @@ def test_sphere_centroids_match_the_projection() -> None:
 def _pyrender_mask(mesh_vertices: np.ndarray, faces: np.ndarray, pose: Pose) -> np.ndarray:
     import trimesh
 
-    tm = trimesh.Trimesh(pose.transform(mesh_vertices), faces, process=False)
-    # OpenCV camera frame -> OpenGL (y up, looking along -z): flip y and z.
-    tm.apply_transform(np.diag([1.0, -1.0, -1.0, 1.0]))
-    scene = pyrender.Scene()
-    scene.add(pyrender.Mesh.from_trimesh(tm, smooth=False))
-    # pyrender's principal point counts from the image edge, OpenCV's from the first pixel centre.
-    cam = pyrender.IntrinsicsCamera(CAM.fx, CAM.fy, CAM.cx + 0.5, CAM.cy + 0.5, 1.0, 5000.0)
-    scene.add(cam, pose=np.eye(4))
-    r = pyrender.OffscreenRenderer(CAM.width, CAM.height)
-    try:
-        depth = r.render(scene, flags=pyrender.RenderFlags.DEPTH_ONLY)
-    finally:
-        r.delete()
-    return np.asarray(depth) > 0
+    from viewloc_core.render import Renderer
+
+    # The project's renderer (pyrender underneath): a raw OffscreenRenderer's
+    # delete() terminates the EGL display and with it every other context.
+    tm = trimesh.Trimesh(mesh_vertices, faces, process=False)
+    with Renderer() as r:
+        return r.render_depth(tm, CAM, pose).mask
 
 
 def test_asymmetric_object_matches_pyrender_and_is_not_mirrored() -> None:
