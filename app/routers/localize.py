@@ -101,6 +101,31 @@ def _overlay(img: np.ndarray, items: list[tuple[Any, list[Detection]]], camera: 
     return base64.b64encode(encode_png(canvas)).decode("ascii")
 
 
+def _answer(
+    head: dict[str, Any],
+    img: np.ndarray,
+    cam: Camera,
+    dets: list[Detection],
+    drawn: list[tuple[Any, list[Detection]]],
+    overlay: bool,
+    timing: dict[str, float],
+    t0: float,
+) -> dict[str, Any]:
+    """The localize answer of API.md: image size, detections, overlay, timings (ms)."""
+    out: dict[str, Any] = {
+        **head,
+        "image": {"width": int(img.shape[1]), "height": int(img.shape[0])},
+        "detections": [detection_dict(d) for d in dets],
+    }
+    if overlay:
+        t = time.perf_counter()
+        out["overlay_png_base64"] = _overlay(img, drawn, cam)
+        timing["overlay"] = (time.perf_counter() - t) * 1000
+    timing["total"] = (time.perf_counter() - t0) * 1000
+    out["timing_ms"] = timing
+    return out
+
+
 @router.post(
     "/v1/objects/{object_id}/localize",
     response_model=LocalizationOut,
@@ -135,18 +160,8 @@ def localize_object(
     timing.update(core_timing)
     if core_total is not None:
         timing["localize"] = core_total
-    out: dict[str, Any] = {
-        "object_id": object_id,
-        "image": {"width": int(img.shape[1]), "height": int(img.shape[0])},
-        "detections": [detection_dict(d) for d in dets],
-    }
-    if overlay:
-        t = time.perf_counter()
-        out["overlay_png_base64"] = _overlay(img, [(model, dets)], cam)
-        timing["overlay"] = (time.perf_counter() - t) * 1000
-    timing["total"] = (time.perf_counter() - t0) * 1000
-    out["timing_ms"] = timing
-    return out
+    return _answer({"object_id": object_id}, img, cam, dets, [(model, dets)], overlay,
+                   timing, t0)
 
 
 @router.post(
@@ -196,15 +211,4 @@ def localize_many(
         all_dets.extend(dets)
     all_dets.sort(key=lambda d: -d.score)
     timing["localize"] = localize_ms
-    out: dict[str, Any] = {
-        "object_ids": ids,
-        "image": {"width": int(img.shape[1]), "height": int(img.shape[0])},
-        "detections": [detection_dict(d) for d in all_dets],
-    }
-    if overlay:
-        t = time.perf_counter()
-        out["overlay_png_base64"] = _overlay(img, drawn, cam)
-        timing["overlay"] = (time.perf_counter() - t) * 1000
-    timing["total"] = (time.perf_counter() - t0) * 1000
-    out["timing_ms"] = timing
-    return out
+    return _answer({"object_ids": ids}, img, cam, all_dets, drawn, overlay, timing, t0)
