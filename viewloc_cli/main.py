@@ -19,6 +19,14 @@ def _serve(args: argparse.Namespace) -> int:
     return 0
 
 
+def _worker(args: argparse.Namespace) -> int:
+    # Imported here: the worker must not load the HTTP stack or a GL context.
+    from app.jobs.redis_runner import run_worker
+    from app.settings import Settings
+
+    return run_worker(Settings(), burst=args.burst, name=args.name)
+
+
 def _learn(args: argparse.Namespace) -> int:
     import json
     from pathlib import Path
@@ -91,6 +99,16 @@ def build_parser() -> argparse.ArgumentParser:
         "--workers", type=int, default=int(os.environ.get("VIEWLOC_HTTP_WORKERS", "1"))
     )
     serve.set_defaults(func=_serve)
+
+    worker = sub.add_parser(
+        "worker",
+        help="run learning jobs from the Redis queue (service with VIEWLOC_JOB_BACKEND=redis)",
+        description="Configured like the service: VIEWLOC_REDIS_URL, VIEWLOC_DATA_DIR (the "
+        "same store as the API), VIEWLOC_JOB_STALE_AFTER_S, VIEWLOC_JOB_CANCEL_GRACE_S.",
+    )
+    worker.add_argument("--burst", action="store_true", help="exit once the queue is empty")
+    worker.add_argument("--name", default=None, help="RQ worker name")
+    worker.set_defaults(func=_worker)
 
     learn = sub.add_parser("learn", help="learn a model from a mesh file into a folder")
     learn.add_argument("mesh", help="STL, OBJ, PLY, OFF, GLB or glTF file")
