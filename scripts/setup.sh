@@ -3,11 +3,31 @@
 # packages (headless EGL/Mesa rendering, POV-Ray for the benchmark scenes,
 # Redis for the scale-out job backend) and the Python environment in .venv.
 # Idempotent: a second run only checks. The Dockerfile runs this same script.
+#
+#   scripts/setup.sh                 everything (make setup / make test)
+#   scripts/setup.sh --system-only   only the apt packages, no .venv
+#   scripts/setup.sh --python-only   only .venv (same as VIEWLOC_SKIP_APT=1)
+#   --runtime (with either)          only what the service needs to run: the
+#                                    EGL/Mesa libraries, no POV-Ray/Redis
+#                                    (benchmark and tests) and no dev extras
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-APT_PACKAGES=(libegl1 libegl-mesa0 libgl1-mesa-dri libosmesa6 povray redis-server)
+RUNTIME_APT_PACKAGES=(libegl1 libegl-mesa0 libgl1-mesa-dri libosmesa6)
+DEV_APT_PACKAGES=(povray redis-server)
 SKIP_APT="${VIEWLOC_SKIP_APT:-0}"
+SKIP_PYTHON=0
+RUNTIME=0
+for arg in "$@"; do
+  case "$arg" in
+    --system-only) SKIP_PYTHON=1 ;;
+    --python-only) SKIP_APT=1 ;;
+    --runtime) RUNTIME=1 ;;
+    *) echo "setup: unknown option $arg (--system-only, --python-only, --runtime)" >&2; exit 2 ;;
+  esac
+done
+APT_PACKAGES=("${RUNTIME_APT_PACKAGES[@]}")
+[ "$RUNTIME" = "1" ] || APT_PACKAGES+=("${DEV_APT_PACKAGES[@]}")
 
 missing=()
 for p in "${APT_PACKAGES[@]}"; do
@@ -21,15 +41,23 @@ if [ "${#missing[@]}" -gt 0 ] && [ "$SKIP_APT" != "1" ]; then
   DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends "${missing[@]}"
 fi
 
+if [ "$SKIP_PYTHON" = "1" ]; then
+  echo "setup: ok (system packages only)"
+  exit 0
+fi
+
+EXTRAS="[dev]"
+[ "$RUNTIME" = "0" ] || EXTRAS=""
 PY="${PYTHON:-python3}"
 if [ ! -x .venv/bin/python ]; then
   echo "setup: creating .venv with $($PY --version)"
   "$PY" -m venv .venv
 fi
 stamp=.venv/.viewloc-setup
+[ "$RUNTIME" = "0" ] || stamp=.venv/.viewloc-setup-runtime
 if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ] || [ scripts/setup.sh -nt "$stamp" ]; then
   .venv/bin/python -m pip install -q --upgrade pip
-  .venv/bin/python -m pip install -q -e ".[dev]"
+  .venv/bin/python -m pip install -q -e ".${EXTRAS}"
   # pyrender pins PyOpenGL 3.1.0, which cannot open an EGL context headless;
   # 3.1.10 can, and pyrender works with it.
   .venv/bin/python -m pip install -q --no-deps "PyOpenGL==3.1.10"
