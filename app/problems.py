@@ -99,9 +99,25 @@ def validation_errors(exc: ValidationError, prefix: str) -> list[tuple[str, str]
     """Field-level messages of a pydantic error, fields written ``prefix.a.b``."""
     out: list[tuple[str, str]] = []
     for err in exc.errors():
-        loc = [str(p) for p in err.get("loc", ()) if p != "__root__"]
-        field = ".".join([prefix, *loc]) if prefix else ".".join(loc)
+        loc = [p for p in err.get("loc", ()) if p != "__root__"]
+        field = field_name([prefix, *loc] if prefix else loc)
         out.append((field or prefix, str(err.get("msg", "invalid"))))
+    return out
+
+
+def field_name(loc: Any) -> str:
+    """``("spec", "views", 0, "polar_deg")`` -> ``"spec.views[0].polar_deg"``.
+
+    List positions are written as indices, as the routes and the core name
+    them (``images[2]``, ``spec.views[0].distance_mm``), so a client sees one
+    spelling whichever layer found the problem.
+    """
+    out = ""
+    for part in loc:
+        if isinstance(part, int):
+            out += f"[{part}]"
+        else:
+            out += f".{part}" if out else str(part)
     return out
 
 
@@ -143,11 +159,11 @@ def install_problem_handlers(app: FastAPI) -> None:
     async def _request_validation(_: Request, exc: RequestValidationError) -> JSONResponse:
         errors: list[tuple[str, str]] = []
         for err in exc.errors():
-            loc = [str(p) for p in err.get("loc", ())]
+            loc = list(err.get("loc", ()))
             # FastAPI prefixes body/query/path; the field name is what a client knows.
             if loc and loc[0] in ("body", "query", "path", "header", "cookie"):
                 loc = loc[1:]
-            errors.append((".".join(loc) or "request", str(err.get("msg", "invalid"))))
+            errors.append((field_name(loc) or "request", str(err.get("msg", "invalid"))))
         return problem_response(422, "the request is not valid", "validation", errors)
 
     @app.exception_handler(StarletteHTTPException)

@@ -106,7 +106,7 @@ def main(argv: list[str] | None = None) -> int:
     benches = load_sets(args, names)
     refine = not args.no_refine
     backend: Backend = (
-        HttpBackend(args.url, refine=refine, api_key=args.api_key)
+        HttpBackend(args.url, refine=refine, api_key=args.api_key, seed=args.seed)
         if args.url
         else CoreBackend(refine=refine, seed=args.seed)
     )

@@ -99,6 +99,13 @@ def summarise(records: list[Record], objects: dict[str, BenchObject], width: int
         latency_median_ms=round(float(np.median(lat)), 2),
         latency_p95_ms=round(float(np.percentile(lat, 95)), 2),
     )
+    server = [r["timing_ms"]["server_total"] for r in records
+              if "server_total" in r.get("timing_ms", {})]
+    if server:
+        out.update(
+            server_total_median_ms=round(float(np.median(server)), 2),
+            server_total_p95_ms=round(float(np.percentile(server, 95)), 2),
+        )
     return out
 
 
@@ -153,6 +160,8 @@ def evaluate_set(
             t0 = time.perf_counter()
             dets = learned.localize(image, im.camera)
             latency_ms = (time.perf_counter() - t0) * 1000.0
+            # Backends that can tell where the time went (HTTP: server timing_ms).
+            breakdown = dict(getattr(learned.localize, "last_timing_ms", None) or {})
             for t in im.targets:
                 if t.object_name != name:
                     continue
@@ -168,6 +177,8 @@ def evaluate_set(
                     )
                 else:
                     records.append(score_target(t, obj, im, dets, latency_ms))
+                    if breakdown:
+                        records[-1]["timing_ms"] = breakdown
     groups = []
     keys = sorted(
         {(r["object"], r["group"]) for r in records}, key=lambda k: (k[0], _group_key(k[1]))
@@ -250,7 +261,11 @@ def format_table(name: str, bench: BenchSet, result: Record | None, header: str)
     lines.append(
         f"worst-group rec2D {_fmt(o.get('worst_group_recognition_2d'), '.2f')}; latency median "
         f"{_fmt(o.get('latency_median_ms'), '.1f')} ms, "
-        f"p95 {_fmt(o.get('latency_p95_ms'), '.1f')} ms; "
+        f"p95 {_fmt(o.get('latency_p95_ms'), '.1f')} ms"
+        + (f" (server total median {_fmt(o.get('server_total_median_ms'), '.1f')} ms, "
+           f"p95 {_fmt(o.get('server_total_p95_ms'), '.1f')} ms)"
+           if "server_total_median_ms" in o else "")
+        + "; "
         f"false positives: {neg['false_positives']} in {neg['images_with_false_positive']}"
         f"/{neg['images']} images without the object"
     )

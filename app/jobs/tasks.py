@@ -41,9 +41,8 @@ def learn_mesh(
     progress("loading mesh", 0.0)
     mesh = load_mesh(data, str(meta["file_type"]), str(meta["units"]))
     config = LearningConfig.from_dict(dict(meta.get("learning") or {}))
-    return learn_from_mesh(
-        mesh, config, progress=progress, rng=int(meta.get("seed", 0)), should_stop=should_stop
-    )
+    # rng=None: the seed is ``learning.seed`` of the upload's spec (default 0).
+    return learn_from_mesh(mesh, config, progress=progress, rng=None, should_stop=should_stop)
 
 
 def learn_images(
@@ -77,5 +76,5 @@ def learn_images(
     config = LearningConfig.from_dict(dict(meta.get("learning") or {}))
     return learn_from_images(
         images, masks, camera_from_meta(meta["camera"]), views, float(meta["diameter_mm"]),
-        config, progress=progress, rng=int(meta.get("seed", 0)), should_stop=should_stop,
+        config, progress=progress, rng=None, should_stop=should_stop,
     )

@@ -12,22 +12,36 @@ import pytest
 
 from model_store import ModelStore
 from tests.app.conftest import LiveServer
+from tests.app.learned import BARBELL, LearnedStore, learned_barbell
 from viewloc_client import ConflictError, ViewlocClient
 from viewloc_core.camera import Camera
 from viewloc_core.pose import Pose
 
-BARBELL = Path(__file__).resolve().parents[2] / "viewloc_bench" / "assets" / "barbell.stl"
+__all__ = ["learned_barbell"]
 
 
 @pytest.mark.slow
 def test_learn_and_localize_barbell_through_http(
-    make_server: Callable[..., LiveServer], tmp_path: Path
+    learned_barbell: LearnedStore, make_server: Callable[..., LiveServer], tmp_path: Path
 ) -> None:
     from viewloc_core.localize import LocalizeOptions, localize
     from viewloc_core.mesh import load_mesh
     from viewloc_core.render import Renderer
 
+    # The barbell was uploaded and learned through the service once per session.
+    created_obj, created_job = learned_barbell.created
+    assert created_obj.state == "learning" and created_job.state in ("queued", "running")
+    assert any(0 < p < 1 and stage.startswith("rendering view") for p, stage in
+               learned_barbell.progress_seen)
+    done = learned_barbell.job
+    assert done["state"] == "succeeded" and done["progress"] == 1.0 and done["stage"] == "done"
+    ready = learned_barbell.obj
+    assert ready["state"] == "ready" and ready["training_views"] == 42
+    assert ready["model_views"] > 1 and ready["source"] == "mesh"
+
+    learned_barbell.copy_to(tmp_path / "var")
     srv = make_server()
+    object_id = learned_barbell.object_id
     mesh = load_mesh(BARBELL)
     cam = Camera(600.0, 600.0, 191.5, 143.5, 384, 288)
     truth = Pose.from_euler_xyz_deg(np.array([35.0, -20.0, 15.0]), np.array([15.0, -10.0, 700.0]))
@@ -36,15 +50,8 @@ def test_learn_and_localize_barbell_through_http(
     ok, buf = cv2.imencode(".png", scene[:, :, ::-1])
     assert ok
     with ViewlocClient(srv.url) as client:
-        obj, job = client.learn_mesh(BARBELL, name="barbell",
-                                     learning={"max_level": 1, "min_level": 1})
-        done = client.wait_for_job(job.job_id, timeout=120)
-        assert done.progress == 1.0 and done.stage == "done"
-        ready = client.get_object(obj.object_id)
-        assert ready.state == "ready" and ready.training_views == 42 and ready.model_views > 1
-        t = time.perf_counter()
-        loc = client.localize(obj.object_id, buf.tobytes(), cam, overlay=True)
-        http_ms = (time.perf_counter() - t) * 1000
+        assert client.get_object(object_id).state == "ready"
+        loc = client.localize(object_id, buf.tobytes(), cam, overlay=True)
         assert len(loc.detections) == 1 and (loc.width, loc.height) == (384, 288)
         det = loc.detections[0]
         t_mm = np.array(det["pose"]["t_mm"])
@@ -60,26 +67,26 @@ def test_learn_and_localize_barbell_through_http(
         assert overlay.shape == (288, 384, 3)
         assert np.count_nonzero(np.any(overlay != scene[:, :, ::-1], axis=2)) > 200
         many = client.localize(None, buf.tobytes(), cam)
-        assert many.object_ids == [obj.object_id]
-        assert many.detections[0]["object_id"] == obj.object_id
+        assert many.object_ids == [object_id]
+        assert many.detections[0]["object_id"] == object_id
 
         # Latency: the same localization directly on the core vs through HTTP.
-        model = ModelStore(tmp_path / "var").load_model(obj.object_id)
+        model = ModelStore(tmp_path / "var").load_model(object_id)
         t = time.perf_counter()
         localize(model, scene, cam, LocalizeOptions())
         direct_ms = (time.perf_counter() - t) * 1000
         t = time.perf_counter()
-        client.localize(obj.object_id, buf.tobytes(), cam)
+        client.localize(object_id, buf.tobytes(), cam)
         http_ms = (time.perf_counter() - t) * 1000
         print(f"\nlocalization latency: direct {direct_ms:.0f} ms, HTTP {http_ms:.0f} ms")
 
         # A corrupted model file is reported (409), never half-used, and the store says why.
-        npz = tmp_path / "var" / "objects" / obj.object_id / "model.npz"
+        npz = tmp_path / "var" / "objects" / object_id / "model.npz"
         data = bytearray(npz.read_bytes())
         data[len(data) // 2] ^= 0xFF
         npz.write_bytes(bytes(data))
-        srv.app.state.store._evict(obj.object_id)
+        srv.app.state.store._evict(object_id)
         with pytest.raises(ConflictError, match="corrupt|checksum"):
-            client.localize(obj.object_id, buf.tobytes(), cam)
-        failed = client.get_object(obj.object_id)
+            client.localize(object_id, buf.tobytes(), cam)
+        failed = client.get_object(object_id)
         assert failed.state == "failed" and "checksum" in (failed.error or "")

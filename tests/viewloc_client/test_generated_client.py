@@ -15,11 +15,15 @@ import httpx
 
 from tests.app.conftest import TEST_TASKS, LiveServer
 from tests.app.helpers import CAMERA, box_stl, png
+from tests.app.learned import LearnedStore, learned_barbell
+
+__all__ = ["learned_barbell"]
 
 
 def test_generated_client_learns_and_localizes(
-    make_server: Callable[..., LiveServer], tmp_path: Path
+    learned_barbell: LearnedStore, make_server: Callable[..., LiveServer], tmp_path: Path
 ) -> None:
+    learned_barbell.copy_to(tmp_path / "var")
     srv = make_server(tasks={**TEST_TASKS, "learn_mesh": TEST_TASKS["sleepy"]}, api_keys="gen-key")
     spec_path = tmp_path / "openapi.json"
     spec_path.write_text(httpx.get(f"{srv.url}/openapi.json",
@@ -56,9 +60,42 @@ def test_generated_client_learns_and_localizes(
         # that passed image and camera validation, answered with a parsed Problem.
         assert loc.status_code == 409, loc.content
         assert isinstance(loc.parsed, models.Problem) and loc.parsed.status == 409
+        # The barbell learned earlier is ready: a real localization, parsed.
+        ok = localize.sync_detailed(
+            learned_barbell.object_id, client=client,
+            body=models.BodyLocalizeObjectV1ObjectsObjectIdLocalizePost(
+                image=types.File(payload=io.BytesIO(_barbell_scene()), file_name="s.png"),
+                camera=json.dumps(CAMERA), options=json.dumps({"refine": False})))
+        assert ok.status_code == 200, ok.content
+        assert isinstance(ok.parsed, models.LocalizationOut)
+        assert ok.parsed.object_id == learned_barbell.object_id
+        assert len(ok.parsed.detections) == 1
+        det = ok.parsed.detections[0]
+        assert 0 <= det.score <= 1 and len(det.pose.t_mm) == 3 and len(det.pose.r) == 3
+        assert abs(det.pose.t_mm[2] - 600.0) < 60.0
         bad = gen.AuthenticatedClient(base_url=srv.url, token="wrong")
         assert create.sync_detailed(client=bad, body=body).status_code == 401
     finally:
         sys.path.remove(str(tmp_path))
         for name in [m for m in sys.modules if m.startswith("viewloc_generated")]:
             del sys.modules[name]
+
+
+def _barbell_scene() -> bytes:
+    """PNG of the barbell 600 mm in front of the helpers' 320x240 camera."""
+    import cv2
+    import numpy as np
+
+    from tests.app.learned import BARBELL
+    from viewloc_core.camera import Camera
+    from viewloc_core.mesh import load_mesh
+    from viewloc_core.pose import Pose
+    from viewloc_core.render import Renderer
+
+    cam = Camera(CAMERA["fx"], CAMERA["fy"], CAMERA["cx"], CAMERA["cy"], 320, 240)
+    pose = Pose.from_euler_xyz_deg(np.array([30.0, -15.0, 10.0]), np.array([5.0, 0.0, 600.0]))
+    with Renderer() as renderer:
+        color = renderer.render(load_mesh(BARBELL), cam, pose, background_rgb=(40, 40, 40)).color
+    ok, buf = cv2.imencode(".png", color[:, :, ::-1])
+    assert ok
+    return bytes(buf.tobytes())
