@@ -176,7 +176,7 @@ class DetectionOut(BaseModel):
         description="Std. dev. of the refined pose: rot x,y,z (deg), trans x,y,z (mm).",
     )
     object_id: str | None = Field(
-        default=None, description="Set when several objects were searched."
+        default=None, description="The object this detection is of."
     )
 
 

@@ -156,6 +156,8 @@ def localize_object(
     cam = _camera(camera, img.shape[1], img.shape[0])
     model = _ready_model(store, object_id)
     dets, core_timing = _run(model, img, cam, opts, metrics)
+    # Every detection names its object, as in the multi-object answer (not null).
+    dets = [dataclasses.replace(d, object_id=object_id) for d in dets]
     core_total = core_timing.pop("total", None)
     timing.update(core_timing)
     if core_total is not None:

@@ -1,0 +1,147 @@
+"""API.md, endpoint by endpoint, against a served store with the barbell learned."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from datetime import datetime
+from pathlib import Path
+
+import cv2
+import httpx
+import numpy as np
+
+from tests.app.conftest import LiveServer
+from tests.app.helpers import CAMERA, assert_problem, png
+from tests.app.learned import BARBELL, LearnedStore, learned_barbell
+from viewloc_core.pose import Pose
+
+__all__ = ["learned_barbell"]
+
+DETECTION_KEYS = {"score", "log_probability", "model_view", "view", "similarity", "pose",
+                  "refined"}
+
+
+def _scene(pose: Pose) -> bytes:
+    from viewloc_core.camera import Camera
+    from viewloc_core.mesh import load_mesh
+    from viewloc_core.render import Renderer
+
+    cam = Camera(CAMERA["fx"], CAMERA["fy"], CAMERA["cx"], CAMERA["cy"], 320, 240)
+    with Renderer() as renderer:
+        color = renderer.render(load_mesh(BARBELL), cam, pose, background_rgb=(40, 40, 40)).color
+    ok, buf = cv2.imencode(".png", color[:, :, ::-1])
+    assert ok
+    return bytes(buf.tobytes())
+
+
+def _rfc3339(text: str) -> datetime:
+    stamp = datetime.fromisoformat(text.replace("Z", "+00:00"))
+    assert stamp.tzinfo is not None and "T" in text, text
+    return stamp
+
+
+def _check_detection(det: dict[str, object]) -> None:
+    assert set(det) >= DETECTION_KEYS, det
+    assert 0.0 <= float(str(det["score"])) <= 1.0
+    pose = det["pose"]
+    assert isinstance(pose, dict) and set(pose) == {"R", "t_mm", "quaternion_wxyz",
+                                                    "euler_xyz_deg"}
+    R = np.array(pose["R"])
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-6)
+    assert abs(np.linalg.det(R) - 1.0) < 1e-6
+    q = np.array(pose["quaternion_wxyz"])
+    assert abs(np.linalg.norm(q) - 1.0) < 1e-6 and q[0] >= 0.0
+    t = np.array(pose["t_mm"])
+    np.testing.assert_allclose(Pose.from_quaternion(q, t).R_m2c, R, atol=1e-6)
+    np.testing.assert_allclose(
+        Pose.from_euler_xyz_deg(np.array(pose["euler_xyz_deg"]), t).R_m2c, R, atol=1e-6)
+    view, sim = det["view"], det["similarity"]
+    assert isinstance(view, dict) and set(view) >= {"azimuth_deg", "polar_deg"}
+    assert isinstance(sim, dict) and set(sim) >= {"x", "y", "angle_deg", "scale"}
+    assert float(sim["scale"]) > 0
+
+
+def test_every_endpoint_answers_as_api_md_says(
+    learned_barbell: LearnedStore, make_server: Callable[..., LiveServer], tmp_path: Path
+) -> None:
+    learned_barbell.copy_to(tmp_path / "var")
+    srv = make_server()
+    oid = learned_barbell.object_id
+    truth = Pose.from_euler_xyz_deg(np.array([30.0, -15.0, 10.0]), np.array([5.0, 0.0, 600.0]))
+    scene = ("s.png", _scene(truth), "image/png")
+    cam = json.dumps(CAMERA)
+    with httpx.Client(base_url=srv.url, timeout=60) as c:
+        # Objects and jobs: shapes and RFC 3339 times.
+        obj = c.get(f"/v1/objects/{oid}").json()
+        assert obj["state"] == "ready" and obj["source"] == "mesh" and obj["error"] is None
+        _rfc3339(obj["created_at"])
+        assert c.get("/v1/objects").json() == {"objects": [obj]}
+        job = c.get(f"/v1/jobs/{obj['job_id']}").json()
+        assert job["object_id"] == oid and job["state"] == "succeeded" and job["error"] is None
+        created, started, finished = (_rfc3339(job[k]) for k in
+                                      ("created_at", "started_at", "finished_at"))
+        assert created <= started <= finished
+        # Cancelling a finished job changes nothing.
+        assert c.delete(f"/v1/jobs/{obj['job_id']}").json() == job
+
+        # One object: image size, detections best first, consistent pose forms, timings.
+        r = c.post(f"/v1/objects/{oid}/localize", files={"image": scene},
+                   data={"camera": cam, "options": json.dumps({"max_detections": 3})})
+        assert r.status_code == 200, r.text
+        body = r.json()
+        assert body["object_id"] == oid and body["image"] == {"width": 320, "height": 240}
+        assert 1 <= len(body["detections"]) <= 3 and "overlay_png_base64" in body
+        scores = [d["score"] for d in body["detections"]]
+        assert scores == sorted(scores, reverse=True)
+        for det in body["detections"]:
+            _check_detection(det)
+            assert det["object_id"] == oid
+        best = body["detections"][0]
+        assert np.linalg.norm(np.array(best["pose"]["t_mm"]) - truth.t_m2c) < 0.05 * 600
+        timing = body["timing_ms"]
+        assert {"total", "decode", "localize"} <= set(timing)
+        assert timing["total"] >= timing["decode"] + timing["localize"] - 1.0
+
+        # Defaults: one detection, refinement on (it may still decline a fit).
+        default = c.post(f"/v1/objects/{oid}/localize", files={"image": scene},
+                         data={"camera": cam}).json()
+        assert len(default["detections"]) == 1
+        no_refine = c.post(f"/v1/objects/{oid}/localize", files={"image": scene},
+                           data={"camera": cam, "options": json.dumps({"refine": False})}).json()
+        assert no_refine["detections"][0]["refined"] is False
+
+        # Nothing there is a normal answer.
+        for image, options in ((png(320, 240, noise=False), {}),
+                               (scene[1], {"min_score": 1.0, "max_detections": 5})):
+            r = c.post(f"/v1/objects/{oid}/localize", files={"image": ("x.png", image)},
+                       data={"camera": cam, "options": json.dumps(options)})
+            assert r.status_code == 200, r.text
+            assert all(d["score"] >= 1.0 for d in r.json()["detections"])
+            if not options:
+                assert r.json()["detections"] == []
+
+        # Several objects: the searched ids, and each detection names its object.
+        many = c.post("/v1/localize", files={"image": scene},
+                      data={"camera": cam, "options": json.dumps({"object_ids": [oid]})}).json()
+        assert many["object_ids"] == [oid] and many["image"] == {"width": 320, "height": 240}
+        assert [d["object_id"] for d in many["detections"]] == [oid]
+        _check_detection(many["detections"][0])
+        everything = c.post("/v1/localize", files={"image": scene}, data={"camera": cam}).json()
+        assert everything["object_ids"] == [oid]
+
+        # The camera's optional size must match the image.
+        r = c.post(f"/v1/objects/{oid}/localize", files={"image": scene},
+                   data={"camera": json.dumps({**CAMERA, "width": 640, "height": 480})})
+        assert_problem(r, 422, "camera")
+
+        # Delete: 204, then gone everywhere (404 problem+json).
+        assert c.delete(f"/v1/objects/{oid}").status_code == 204
+        assert c.get("/v1/objects").json() == {"objects": []}
+        assert_problem(c.post(f"/v1/objects/{oid}/localize", files={"image": scene},
+                              data={"camera": cam}), 404)
+        assert_problem(c.post("/v1/localize", files={"image": scene},
+                              data={"camera": cam, "options": json.dumps({"object_ids": [oid]})}),
+                       404)
+        none_left = c.post("/v1/localize", files={"image": scene}, data={"camera": cam}).json()
+        assert none_left["object_ids"] == [] and none_left["detections"] == []
