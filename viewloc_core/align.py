@@ -20,7 +20,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -55,12 +55,16 @@ class AlignConfig:
         Pairings further than this many attribute sigmas are not formed.
     vote_xy_px, vote_angle_deg, vote_log2_scale : float
         Bin sizes of the seed voting table.
-    max_bins : int
-        Vote bins turned into hypotheses.
+    max_peaks : int
+        Peaks of the location vote map searched for hypotheses.
+    hypotheses_per_peak : int
+        (view, angle, scale) vote bins per peak turned into hypotheses.
     max_scored : int
         Hypotheses (by quick coverage) whose g is computed.
     max_hypotheses : int
         Hypotheses extended on all edge samples after ranking by g.
+    max_alternatives : int
+        Other model views kept per image location for the 6D verification.
     min_coverage : float
         Hypotheses whose quick coverage is below this are dropped early.
     icp_radii_px : tuple of float
@@ -80,9 +84,11 @@ class AlignConfig:
     vote_xy_px: float = 12.0
     vote_angle_deg: float = 20.0
     vote_log2_scale: float = 0.35
-    max_bins: int = 80
+    max_peaks: int = 16
+    hypotheses_per_peak: int = 5
     max_scored: int = 16
     max_hypotheses: int = 5
+    max_alternatives: int = 3
     min_coverage: float = 0.25
     icp_radii_px: tuple[float, ...] = (4.0, 2.5, 1.5, 1.5)
     coarse_radii_px: tuple[float, ...] = (8.0, 4.0)
@@ -105,6 +111,11 @@ class Match2D:
         Fraction of the view's edge samples confirmed by image edges.
     n_pairs : int
         Number of feature pairings in E.
+    alternatives : tuple of Match2D
+        Other model views that fit about the same image location, best
+        first (their ``alternatives`` are empty). A 2D similarity cannot
+        tell some views apart (a barbell's plate seen end-on or a plate of
+        a side view), the 6D verification can.
     """
 
     model_view: int
@@ -112,6 +123,7 @@ class Match2D:
     log_probability: float
     coverage: float
     n_pairs: int
+    alternatives: tuple[Match2D, ...] = ()
 
 
 @dataclass(frozen=True, slots=True)
@@ -335,6 +347,74 @@ def extend(
     return current
 
 
+def _vote_hypotheses(views: NDArray[np.int64], sims: F64, weights: F64,
+                     shape: tuple[int, int], config: AlignConfig
+                     ) -> tuple[NDArray[np.int64], F64]:
+    """Hypotheses (model view, similarity) from seed votes, location first.
+
+    Seeds first vote for where the object's reference point is, pooled over
+    model views, angles and scales: neighbouring model views describe the same
+    object, so the evidence of all of them adds up at the true location even
+    when each view alone has only a few consistent seeds. At each peak of
+    that location map the seeds nearby then vote for (view, angle, scale),
+    and the best-supported combinations become hypotheses.
+
+    Parameters
+    ----------
+    views : (N,) int
+        Model view of each seed.
+    sims : (N, 4) float
+        Seed similarities model view -> image.
+    weights : (N,) float
+        Log odds of each seed's pairing.
+    shape : (int, int)
+        Image height and width (px).
+    config : AlignConfig
+
+    Returns
+    -------
+    views : (H,) int64
+    sims : (H, 4) float64
+    """
+    cell = config.vote_xy_px / 2.0
+    vote = np.maximum(weights, 0.0) + 0.5
+    h, w = shape
+    gx = np.floor(sims[:, 0] / cell).astype(np.int64) + 2
+    gy = np.floor(sims[:, 1] / cell).astype(np.int64) + 2
+    gw, gh = int(np.ceil(w / cell)) + 4, int(np.ceil(h / cell)) + 4
+    inside = (gx >= 0) & (gx < gw) & (gy >= 0) & (gy < gh)
+    raw = np.zeros((gh, gw), np.float32)
+    np.add.at(raw, (gy[inside], gx[inside]), vote[inside].astype(np.float32))
+    acc = np.asarray(cv2.GaussianBlur(raw, (0, 0), 1.0), dtype=np.float32)
+    peaks = (acc >= cv2.dilate(acc, np.ones((5, 5), np.uint8))) & (acc > 0)
+    py, px = np.nonzero(peaks)
+    order = np.argsort(-acc[py, px])[: config.max_peaks]
+    centres = np.stack([(px[order] - 2 + 0.5) * cell, (py[order] - 2 + 0.5) * cell], axis=1)
+    # Bins of (view, angle, scale), shared by all peaks.
+    key = views.astype(np.int64)
+    key = key * 64 + np.floor((sims[:, 2] + np.pi) / np.radians(config.vote_angle_deg)).astype(
+        np.int64)
+    key = key * 64 + np.clip(
+        np.floor(np.log2(sims[:, 3]) / config.vote_log2_scale).astype(np.int64) + 32, 0, 63)
+    out_views: list[NDArray[np.int64]] = []
+    out_sims: list[F64] = []
+    for c in centres:
+        near = np.flatnonzero(np.hypot(sims[:, 0] - c[0], sims[:, 1] - c[1]) < 2.0 * cell)
+        if len(near) == 0:
+            continue
+        uniq, inv = np.unique(key[near], return_inverse=True)
+        support = np.bincount(inv, weights=vote[near])
+        top = np.argsort(-support)[: config.hypotheses_per_peak]
+        for b in top:
+            members = near[inv == b]
+            best = members[np.argmax(vote[members])]
+            out_views.append(views[best:best + 1])
+            out_sims.append(sims[best:best + 1])
+    if not out_views:
+        return np.zeros(0, np.int64), np.zeros((0, 4))
+    return np.concatenate(out_views), np.concatenate(out_sims)
+
+
 def _coverage_many(feats: ImageFeatures, sims: F64, pts: F64, bins: NDArray[np.int64],
                    valid: NDArray[np.bool_]) -> F64:
     """``coverage`` for H hypotheses at once; pts (H, P, 2), bins/valid (H, P)."""
@@ -490,28 +570,9 @@ def align(
     sims, j2, w2 = sims[ok], j2[ok], w2[ok]
     if len(sims) == 0:
         return []
-    views = index.view_of[j2]
-    # Vote: consistent seeds accumulate; a seed's vote is its positive log odds.
-    # One int64 key per bin (each field offset to be non-negative and < 2^12).
-    fields = [
-        np.floor(sims[:, 0] / config.vote_xy_px).astype(np.int64) + 2048,
-        np.floor(sims[:, 1] / config.vote_xy_px).astype(np.int64) + 2048,
-        np.floor((sims[:, 2] + np.pi) / np.radians(config.vote_angle_deg)).astype(np.int64),
-        np.floor(np.log2(sims[:, 3]) / config.vote_log2_scale).astype(np.int64) + 2048,
-    ]
-    key = views.astype(np.int64)
-    for f in fields:
-        key = key * 4096 + np.clip(f, 0, 4095)
-    uniq_key, inv = np.unique(key, return_inverse=True)
-    uniq_view = uniq_key // (4096**4)
-    votes = np.bincount(inv, weights=np.maximum(w2, 0.0) + 0.5)
-    top_bins = np.argsort(-votes)[: config.max_bins]
-    hyp_views = np.empty(len(top_bins), np.int64)
-    hyp_sims = np.empty((len(top_bins), 4))
-    for n, b in enumerate(top_bins):
-        members = np.flatnonzero(inv == b)
-        hyp_views[n] = uniq_view[b]
-        hyp_sims[n] = sims[members[np.argmax(w2[members])]]
+    hyp_views, hyp_sims = _vote_hypotheses(index.view_of[j2], sims, w2, feats.shape, config)
+    if len(hyp_views) == 0:
+        return []
     # Quick extension of every voted hypothesis on its view's coarse edge
     # subset, all at once, so that seeds a few pixels off are judged after,
     # not before, they snap in.
@@ -529,10 +590,11 @@ def align(
             break
         view = int(hyp_views[n])
         gval, _ = log_probability(model.model_views[view], feats, fitted_all[n])
-        scored.append((gval + config.coverage_weight * cov_all[n], view, fitted_all[n]))
+        scored.append((gval + config.coverage_weight * cov_all[n], view, fitted_all[n],
+                       float(cov_all[n])))
     scored.sort(key=lambda item: -item[0])
     matches: list[Match2D] = []
-    for _, view, sim in scored[: config.max_hypotheses]:
+    for _, view, sim, _ in scored[: config.max_hypotheses]:
         pts, theta = index.fine_edges[view]
         fitted = extend(feats, sim, pts, theta, config)
         cov = coverage(feats, fitted, pts, orientation_bin(theta))
@@ -541,20 +603,35 @@ def align(
     # Pope & Lowe rank by g; coverage alone prefers small views that match
     # a part of the object (one plate of a barbell) perfectly.
     matches.sort(key=lambda m: -(m.log_probability + config.coverage_weight * m.coverage))
-    return suppress_duplicates(matches, index.view_radius_px, max_matches)
+    # Hypotheses not extended on all samples still serve as alternatives.
+    rest = [Match2D(view, sim, rank - config.coverage_weight * cov, cov, 0)
+            for rank, view, sim, cov in scored[config.max_hypotheses:]]
+    return suppress_duplicates(matches + rest, index.view_radius_px, max_matches,
+                               config.max_alternatives)
 
 
 def suppress_duplicates(matches: list[Match2D], view_radius_px: float,
-                        max_matches: int) -> list[Match2D]:
-    """Non-maximum suppression: keep the best match per image location."""
+                        max_matches: int, max_alternatives: int = 0) -> list[Match2D]:
+    """Non-maximum suppression: keep the best match per image location.
+
+    Matches suppressed by a kept one become its alternatives when they are of
+    another model view (up to ``max_alternatives``, in the order given).
+    """
     kept: list[Match2D] = []
+    alternatives: list[list[Match2D]] = []
     for m in matches:
         radius = 0.5 * view_radius_px * m.sim[3]
-        if all(np.hypot(*(m.sim[:2] - o.sim[:2])) > radius for o in kept):
-            kept.append(m)
-        if len(kept) >= max_matches:
-            break
-    return kept
+        near = [i for i, o in enumerate(kept) if np.hypot(*(m.sim[:2] - o.sim[:2])) <= radius]
+        if not near:
+            if len(kept) < max_matches:
+                kept.append(m)
+                alternatives.append([])
+            continue
+        i = near[0]
+        views = {kept[i].model_view} | {a.model_view for a in alternatives[i]}
+        if len(alternatives[i]) < max_alternatives and m.model_view not in views:
+            alternatives[i].append(m)
+    return [replace(m, alternatives=tuple(a)) for m, a in zip(kept, alternatives, strict=True)]
 
 
 def refine_at_model_scale(

@@ -29,13 +29,19 @@ from viewloc_core.align import (
 )
 from viewloc_core.camera import Camera
 from viewloc_core.contour_model import ContourModel
-from viewloc_core.detection import Detection
+from viewloc_core.detection import Detection, Similarity2D
 from viewloc_core.errors import InvalidInputError
 from viewloc_core.features import ImageFeatures, extract_features, orientation_bin, to_grey_float
 from viewloc_core.model import ObjectModel
 from viewloc_core.pose import Pose
 from viewloc_core.pose_from_match import pose_from_similarity
-from viewloc_core.refine import EdgePyramid, prepare_edges, refine_pose
+from viewloc_core.refine import (
+    EdgePyramid,
+    RefinementResult,
+    RefineOptions,
+    prepare_edges,
+    refine_pose,
+)
 
 #: Images larger than this (longest side, px) are searched on a pyramid level.
 MAX_SEARCH_SIDE_PX = 700
@@ -102,15 +108,13 @@ def _contour_model(model: ObjectModel) -> ContourModel | None:
     return contour
 
 
-def _best_training_view(
-    model: ObjectModel, match: Match2D, feats: ImageFeatures, image: NDArray[np.generic],
-    radius_px: float,
+def _member_view(
+    model: ObjectModel, match: Match2D, feats: ImageFeatures
 ) -> tuple[int, NDArray[np.float64], float]:
     """Member training view of the matched model view that fits the image best.
 
     Returns the training view index, the similarity training-view frame ->
-    image (re-fitted on that view's own edge samples, at training scale) and
-    its coverage.
+    image and its coverage.
     """
     tr = model.training
     members = np.flatnonzero(tr.model_view == match.model_view)
@@ -121,14 +125,115 @@ def _best_training_view(
         cov = coverage(feats, sim_t, pts, orientation_bin(tr.edge_theta[t]))
         if cov > best[0]:
             best = (cov, int(t), sim_t)
-    _, t_best, sim_best = best
-    pts = tr.edge_xy[t_best].astype(np.float64)
-    theta = tr.edge_theta[t_best].astype(np.float64)
-    refit, crop_feats, crop_from_image = refine_at_model_scale(
-        image, sim_best, pts, theta, radius_px
-    )
+    return best[1], best[2], best[0]
+
+
+def _refit_at_model_scale(
+    model: ObjectModel, t_view: int, sim: NDArray[np.float64], image: NDArray[np.generic],
+    radius_px: float,
+) -> tuple[NDArray[np.float64], float]:
+    """Final 2D fit of a training view on a crop resampled to training scale.
+
+    Returns the re-fitted similarity training-view frame -> image and its coverage.
+    """
+    tr = model.training
+    pts = tr.edge_xy[t_view].astype(np.float64)
+    theta = tr.edge_theta[t_view].astype(np.float64)
+    refit, crop_feats, crop_from_image = refine_at_model_scale(image, sim, pts, theta, radius_px)
     cov = coverage(crop_feats, sim2.compose(crop_from_image, refit), pts, orientation_bin(theta))
-    return t_best, refit, cov
+    return refit, cov
+
+
+def _to_full_resolution(sim_level: NDArray[np.float64], factor: float) -> Similarity2D:
+    """A similarity found on a pyramid level scaled by ``factor``, in full-resolution pixels."""
+    sim_full = sim_level.copy()
+    if factor < 1.0:
+        sim_full[:2] = (sim_level[:2] + 0.5) / factor - 0.5
+        sim_full[3] = sim_level[3] / factor
+    return sim2.to_similarity2d(sim_full)
+
+
+#: Refinement settings of the quick 6D check that chooses among alternative
+#: views at one location: the coarse level only, a few iterations.
+QUICK_REFINE = RefineOptions(iterations=(0, 4), shift_search_px=12.0)
+
+
+def _pose_centred(
+    model: ObjectModel, t_view: int, similarity: Similarity2D, camera: Camera
+) -> Pose:
+    """6D pose of the model's centred frame from a training view's similarity (§4.2)."""
+    return pose_from_similarity(
+        similarity, model.training.R_m2c[t_view], model.d0_mm, model.f_train_px, camera
+    )
+
+
+#: Locations beyond ``max_detections`` that get the final fit, in case the
+#: quick check ranked a true one just below a false one.
+_SPARE_LOCATIONS = 1
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class _Located:
+    """The chosen view at one image location, before the final fit."""
+
+    match: Match2D
+    t_view: int
+    sim_level: NDArray[np.float64]
+    coverage: float
+    quick: RefinementResult | None
+
+
+def _quick_rank(result: RefinementResult | None) -> float:
+    """Ranking key of a quick 6D check: share of the contour that found its edge."""
+    return -1.0 if result is None else float(result.inlier_fraction)
+
+
+def _final_detection(
+    model: ObjectModel, loc: _Located, level: NDArray[np.generic], factor: float,
+    camera: Camera, edges: EdgePyramid | None, contour: ContourModel | None,
+    view_radius_px: float,
+) -> Detection:
+    """2D fit at training scale, 6D pose and, with a contour model, its refinement."""
+    sim_level, cov = _refit_at_model_scale(model, loc.t_view, loc.sim_level, level,
+                                           view_radius_px)
+    similarity = _to_full_resolution(sim_level, factor)
+    pose_centred = _pose_centred(model, loc.t_view, similarity, camera)
+    refined = False
+    pose_std = None
+    score = float(cov)
+    if contour is not None and edges is not None:
+        start = loc.quick.pose if loc.quick is not None else pose_centred
+        result = refine_pose(edges, camera, start, contour)
+        if loc.quick is not None and _quick_rank(loc.quick) > _quick_rank(result):
+            result = loc.quick
+        moved = np.linalg.norm(result.pose.t_m2c - pose_centred.t_m2c)
+        # Accept only a fit that matched most of the contour and did not
+        # wander off (a wrong 2D match cannot be rescued here).
+        fits = result.converged or result.mean_residual_px < 1.0
+        if (fits and result.inlier_fraction >= 0.6
+                and moved < 0.25 * model.diameter_mm + 0.05 * pose_centred.t_m2c[2]):
+            pose_centred = result.pose
+            refined = True
+            pose_std = result.pose_std
+            # The reference point is where the refined pose puts the origin.
+            ref_xy = camera.project(pose_centred.t_m2c[None])[0]
+            similarity = Similarity2D(float(ref_xy[0]), float(ref_xy[1]),
+                                      similarity.angle_deg, similarity.scale)
+        score = float(result.inlier_fraction)
+    # The model was learned with the bounding-box centre as origin.
+    pose = Pose(pose_centred.R_m2c,
+                pose_centred.t_m2c - pose_centred.R_m2c @ model.origin_offset_mm)
+    return Detection(
+        score=score,
+        log_probability=float(loc.match.log_probability),
+        model_view=int(model.training.model_view[loc.t_view]),
+        azimuth_deg=float(model.training.azimuth_deg[loc.t_view]),
+        polar_deg=float(model.training.polar_deg[loc.t_view]),
+        similarity=similarity,
+        pose=pose,
+        refined=refined,
+        pose_std=pose_std,
+    )
 
 
 def localize(
@@ -180,59 +285,35 @@ def localize(
     timing["align"] = (t3 - t2) * 1e3
 
     min_score = model.default_min_score if options.min_score is None else options.min_score
-    detections: list[Detection] = []
-    edges: EdgePyramid | None = None
+    contour = _contour_model(model) if options.refine else None
+    edges = prepare_edges(arr) if contour is not None and matches else None
+    # Pass 1: per image location, the view that explains the image best.
+    located: list[_Located] = []
     for match in matches:
-        t_view, sim_level, cov = _best_training_view(
-            model, match, feats, level, index.view_radius_px
-        )
-        sim_full = sim_level.copy()
-        if factor < 1.0:
-            sim_full[:2] = (sim_level[:2] + 0.5) / factor - 0.5
-            sim_full[3] = sim_level[3] / factor
-        similarity = sim2.to_similarity2d(sim_full)
-        R_view = model.training.R_m2c[t_view]
-        pose_centred = pose_from_similarity(
-            similarity, R_view, model.d0_mm, model.f_train_px, camera
-        )
-        refined = False
-        pose_std = None
-        score = float(cov)
-        contour = _contour_model(model) if options.refine else None
-        if contour is not None:
-            if edges is None:
-                edges = prepare_edges(arr)
-            result = refine_pose(edges, camera, pose_centred, contour)
-            moved = np.linalg.norm(result.pose.t_m2c - pose_centred.t_m2c)
-            # Accept only a fit that converged on most of the contour and did
-            # not wander off (a wrong 2D match cannot be rescued here).
-            fits = result.converged or result.mean_residual_px < 1.0
-            if (fits and result.inlier_fraction >= 0.6
-                    and moved < 0.25 * model.diameter_mm + 0.05 * pose_centred.t_m2c[2]):
-                pose_centred = result.pose
-                refined = True
-                pose_std = result.pose_std
-            score = 0.5 * (float(cov) + float(result.inlier_fraction))
-        # The model was learned with the bounding-box centre as origin.
-        pose = Pose(
-            pose_centred.R_m2c,
-            pose_centred.t_m2c - pose_centred.R_m2c @ model.origin_offset_mm,
-        )
-        if score < min_score:
+        candidates = [(*_member_view(model, m, feats), None)
+                      for m in (match, *match.alternatives)]
+        if contour is None or edges is None:
+            located.append(_Located(match, *candidates[0]))
             continue
-        detections.append(
-            Detection(
-                score=score,
-                log_probability=float(match.log_probability),
-                model_view=int(match.model_view),
-                azimuth_deg=float(model.training.azimuth_deg[t_view]),
-                polar_deg=float(model.training.polar_deg[t_view]),
-                similarity=similarity,
-                pose=pose,
-                refined=refined,
-                pose_std=pose_std,
-            )
-        )
+        # A short 6D refinement of each alternative view tells which one
+        # explains the image edges; the 2D similarity cannot.
+        checked = [
+            (t, sl, cov, refine_pose(
+                edges, camera, _pose_centred(model, t, _to_full_resolution(sl, factor), camera),
+                contour, QUICK_REFINE))
+            for t, sl, cov, _ in candidates
+        ]
+        best = max(checked, key=lambda c: _quick_rank(c[3]))
+        located.append(_Located(match, *best))
+    if edges is not None:
+        located.sort(key=lambda c: -_quick_rank(c.quick))
+    # Pass 2: final fit of the best locations only.
+    detections: list[Detection] = []
+    for loc in located[: options.max_detections + _SPARE_LOCATIONS]:
+        det = _final_detection(model, loc, level, factor, camera, edges, contour,
+                               index.view_radius_px)
+        if det.score >= min_score:
+            detections.append(det)
     detections.sort(key=lambda d: -d.score)
     detections = detections[: options.max_detections]
     timing["pose"] = (time.perf_counter() - t3) * 1e3

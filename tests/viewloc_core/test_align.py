@@ -82,3 +82,45 @@ def test_finds_the_object_in_clutter(renderer, bracket_mesh, bracket_model):
 def test_blank_image_gives_no_match(bracket_model):
     feats = extract_features(np.full((240, 320, 3), 90, np.uint8))
     assert align(bracket_model, model_index(bracket_model), feats) == []
+
+
+def test_location_vote_pools_views_and_finds_each_cluster():
+    """Seeds of several views that agree on a location outvote a larger
+    single-view cluster of inconsistent seeds, and every peak gets hypotheses."""
+    from viewloc_core.align import AlignConfig, _vote_hypotheses
+
+    rng = np.random.default_rng(0)
+    # Object A at (100, 80): 30 seeds spread over 6 views, angles and scales.
+    a_xy = np.array([100.0, 80.0]) + rng.normal(0, 2.0, (30, 2))
+    a = np.column_stack([a_xy, rng.uniform(-0.2, 0.2, 30), rng.uniform(0.9, 1.1, 30)])
+    a_views = np.repeat(np.arange(6), 5)
+    # Clutter: 40 seeds of one view scattered over the image.
+    c = np.column_stack([rng.uniform(0, 320, (40, 2)), rng.uniform(-3, 3, 40), np.ones(40)])
+    # Object B at (250, 200): 12 seeds of view 7.
+    b = np.column_stack([np.array([250.0, 200.0]) + rng.normal(0, 2.0, (12, 2)),
+                         np.full(12, 1.0), np.full(12, 0.7)])
+    sims = np.vstack([a, c, b])
+    views = np.concatenate([a_views, np.full(40, 9), np.full(12, 7)])
+    views_out, sims_out = _vote_hypotheses(views, sims, np.ones(len(sims)), (240, 320),
+                                           AlignConfig())
+    d_a = np.hypot(sims_out[:, 0] - 100, sims_out[:, 1] - 80)
+    d_b = np.hypot(sims_out[:, 0] - 250, sims_out[:, 1] - 200)
+    # The strongest peak comes first: its hypotheses are object A's views.
+    assert d_a[0] < 8 and views_out[0] in range(6)
+    assert np.any(d_b < 8) and set(views_out[d_b < 8]) == {7}
+    assert len(views_out) <= AlignConfig().max_peaks * AlignConfig().hypotheses_per_peak
+
+
+def test_suppressed_views_at_a_location_become_alternatives():
+    from viewloc_core.align import Match2D, suppress_duplicates
+
+    def m(view, x, g):
+        return Match2D(view, np.array([x, 50.0, 0.0, 1.0]), g, 0.8, 10)
+
+    out = suppress_duplicates(
+        [m(0, 100, 9), m(1, 103, 8), m(0, 101, 7), m(2, 200, 6), m(3, 98, 5), m(4, 99, 4)],
+        view_radius_px=40.0, max_matches=5, max_alternatives=2)
+    assert [o.model_view for o in out] == [0, 2]
+    # Other views only, at most two, in the order given.
+    assert [a.model_view for a in out[0].alternatives] == [1, 3]
+    assert out[1].alternatives == ()

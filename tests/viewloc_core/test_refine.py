@@ -12,7 +12,7 @@ from viewloc_core.camera import Camera
 from viewloc_core.contour_model import build_contour_model
 from viewloc_core.errors import InvalidImageError, InvalidInputError
 from viewloc_core.pose import Pose, rotation_angle_deg
-from viewloc_core.refine import prepare_edges, refine_pose
+from viewloc_core.refine import RefineOptions, prepare_edges, refine_pose
 from viewloc_core.render import Renderer, prepare
 from viewloc_core.view_sphere import subdivided_sphere
 
@@ -111,3 +111,27 @@ def test_bad_input(scene):
         refine_pose(np.zeros((480, 640, 3), np.int32), CAM, Pose.identity(), model)
     with pytest.raises(InvalidInputError):
         refine_pose(np.zeros((100, 100), np.uint8), CAM, Pose.identity(), model)
+
+
+def test_chance_rate_is_higher_in_clutter_and_the_score_corrects_for_it(scene):
+    renderer, prepared, model = scene
+    rng = np.random.default_rng(3)
+    truth = Pose(Rotation.random(random_state=6).as_matrix(), np.array([0.0, 0.0, 600.0]))
+    out = renderer.render(prepared, CAM, truth)
+    clean = refine_pose(out.color, CAM, truth, model)
+    # Dense random strokes everywhere but on the part.
+    strokes = np.zeros_like(out.color)
+    for _ in range(400):
+        p, q = rng.integers(0, [CAM.width, CAM.height], size=(2, 2))
+        cv2.line(strokes, tuple(map(int, p)), tuple(map(int, q)), (255, 255, 255), 1)
+    busy = np.where(out.mask[..., None], out.color, strokes)
+    cluttered = refine_pose(busy, CAM, truth, model)
+    assert clean.chance_fraction < cluttered.chance_fraction
+    assert 0.0 <= cluttered.score <= clean.score <= 1.0
+    assert cluttered.score < cluttered.inlier_fraction
+    # Length-weighted support is positive where the contour is confirmed ...
+    assert clean.support > 0
+    # ... and negative for the same contour far from the part.
+    far = refine_pose(out.color, CAM, Pose(truth.R_m2c, truth.t_m2c + [150.0, 0.0, 0.0]), model,
+                      RefineOptions(iterations=(0, 0)))
+    assert far.support < 0
