@@ -35,7 +35,6 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
-from scipy.spatial.transform import Rotation
 
 from viewloc_core.camera import Camera
 from viewloc_core.contour_model import ContourModel
@@ -160,6 +159,9 @@ class RefineOptions:
     shift_search_px : float
         Half-width (full-resolution pixels) of the exhaustive 2D shift search
         run before Gauss-Newton; 0 switches it off.
+    measure_chance : bool
+        Measure the chance rate and support of the final pose (about a
+        millisecond; quick checks that only compare inlier fractions skip it).
     """
 
     levels: int = 2
@@ -171,6 +173,7 @@ class RefineOptions:
     tol_rot_deg: float = 0.01
     tol_trans_mm: float = 0.02
     shift_search_px: float = 16.0
+    measure_chance: bool = True
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -346,7 +349,9 @@ def _tukey_weights(r: Array, min_scale: float) -> tuple[Array, float]:
 
 
 def _apply(pose: Pose, delta: Array) -> Pose:
-    dR = Rotation.from_rotvec(delta[:3]).as_matrix()
+    # cv2.Rodrigues: the same rotation vector -> matrix as scipy's, ~20x faster
+    # on one vector (this runs once per Gauss-Newton step).
+    dR, _ = cv2.Rodrigues(np.asarray(delta[:3], dtype=np.float64).reshape(3, 1))
     return Pose(orthonormalize(dR @ pose.R_m2c), pose.t_m2c + delta[3:])
 
 
@@ -483,8 +488,10 @@ def _final(
         return RefinementResult(pose, False, iterations, math.inf, 0.0)
     inl = np.abs(m.r) <= opts.inlier_px
     fraction = float(np.count_nonzero(inl)) / m.n_projected
-    chance, spacing_px = _chance_fraction(pose, camera, model, edges, search, opts)
-    support = _support(int(np.count_nonzero(inl)), m.n_projected, chance, spacing_px)
+    chance, support = 1.0, -math.inf
+    if opts.measure_chance:
+        chance, spacing_px = _chance_fraction(pose, camera, model, edges, search, opts)
+        support = _support(int(np.count_nonzero(inl)), m.n_projected, chance, spacing_px)
     if np.count_nonzero(inl) < 6:
         return RefinementResult(pose, False, iterations, math.inf, fraction,
                                 chance_fraction=chance, support=support)
