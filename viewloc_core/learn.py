@@ -537,6 +537,7 @@ def learn_from_mesh(
     from viewloc_core.contour_model import build_contour_model
     from viewloc_core.mesh import mesh_diameter_mm
     from viewloc_core.render import Renderer, prepare, random_lights
+    from viewloc_core.symmetry import detect_symmetries
 
     config.validate()
     gen = np.random.default_rng(config.seed if rng is None else rng)
@@ -589,7 +590,12 @@ def learn_from_mesh(
         progress("finishing", 1.0)
     model = _finish(clusterer, rotations, samples, angles, "mesh", diameter, d0, f, size,
                     centre, config, mesh)
-    return replace(model, contour=contour.to_arrays())
+    sym = detect_symmetries(mesh, rng=0)
+    axis = None
+    if sym.continuous_axis is not None and sym.continuous_offset is not None:
+        axis = np.concatenate([sym.continuous_axis, sym.continuous_offset])
+    return replace(model, contour=contour.to_arrays(), symmetries=sym.discrete,
+                   symmetry_axis=axis)
 
 
 def learn_from_images(

@@ -42,6 +42,7 @@ from viewloc_core.refine import (
     prepare_edges,
     refine_pose,
 )
+from viewloc_core.symmetry import canonical_pose
 
 #: Images larger than this (longest side, px) are searched on a pyramid level.
 MAX_SEARCH_SIDE_PX = 700
@@ -260,6 +261,10 @@ def _final_detection(
     # The model was learned with the bounding-box centre as origin.
     pose = Pose(pose_centred.R_m2c,
                 pose_centred.t_m2c - pose_centred.R_m2c @ model.origin_offset_mm)
+    if len(model.symmetries) > 1 or model.symmetry_axis is not None:
+        # Symmetric equivalents look the same: report the one whose axes are
+        # closest to the camera's, so the answer does not jump between them.
+        pose = canonical_pose(pose, model.symmetry_group())
     return Detection(
         score=score,
         log_probability=float(loc.match.log_probability),

@@ -25,6 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from viewloc_core.errors import ModelFormatError
+from viewloc_core.symmetry import Symmetries
 
 SCHEMA_VERSION = 1
 
@@ -136,7 +137,12 @@ class ObjectModel:
     contour : dict of arrays or None
         Pose refinement's contour model in array form (``contour_model``).
     symmetries : (K, 4, 4) float64
-        Object-frame symmetry transforms including the identity.
+        Discrete object-frame symmetry transforms, the identity first (BOP's
+        ``symmetries_discrete``; for a part with a continuous axis: the
+        identity and, when present, a 180° flip perpendicular to it).
+    symmetry_axis : (6,) float64 or None
+        Continuous rotational symmetry: unit axis (3,) then a point on it
+        (3,), mm, user's object frame; None when there is none.
     default_min_score : float
         Detections below this score are not reported unless asked.
     config : dict
@@ -157,6 +163,14 @@ class ObjectModel:
     symmetries: F64 = field(default_factory=lambda: np.eye(4)[None])
     default_min_score: float = 0.5
     config: dict[str, Any] = field(default_factory=dict)
+    symmetry_axis: F64 | None = None
+
+    def symmetry_group(self) -> Symmetries:
+        """The part's symmetries as :class:`viewloc_core.symmetry.Symmetries`."""
+        if self.symmetry_axis is None:
+            return Symmetries(self.symmetries)
+        axis = np.asarray(self.symmetry_axis, np.float64)
+        return Symmetries(self.symmetries, axis[:3], axis[3:])
 
     @property
     def training_views(self) -> int:
@@ -206,6 +220,8 @@ def model_to_arrays(model: ObjectModel) -> tuple[dict[str, NDArray[Any]], dict[s
     arrays["tv_edge_offsets"] = np.cumsum([0] + [len(e) for e in tr.edge_theta]).astype(np.int64)
     arrays["origin_offset_mm"] = model.origin_offset_mm
     arrays["symmetries"] = model.symmetries
+    if model.symmetry_axis is not None:
+        arrays["symmetry_axis"] = np.asarray(model.symmetry_axis, np.float64)
     if model.mesh_vertices_mm is not None and model.mesh_faces is not None:
         arrays["mesh_vertices_mm"] = model.mesh_vertices_mm
         arrays["mesh_faces"] = model.mesh_faces
@@ -294,6 +310,8 @@ def model_from_arrays(arrays: dict[str, NDArray[Any]], meta: dict[str, Any]) -> 
             mesh_faces=arrays.get("mesh_faces"),
             contour=contour,
             symmetries=np.asarray(arrays["symmetries"], np.float64),
+            symmetry_axis=(np.asarray(arrays["symmetry_axis"], np.float64).reshape(6)
+                           if "symmetry_axis" in arrays else None),
             default_min_score=float(meta["default_min_score"]),
             config=dict(meta.get("config", {})),
         )

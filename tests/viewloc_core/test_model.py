@@ -35,3 +35,23 @@ def test_missing_array_is_rejected(bracket_model):
     del arrays["mv_xy"]
     with pytest.raises(ModelFormatError):
         model_from_arrays(arrays, meta)
+
+
+def test_symmetries_round_trip_and_form_a_group(bracket_model):
+    from dataclasses import replace
+
+    from viewloc_core.symmetry import Symmetries
+
+    # The learned bracket is asymmetric: only the identity, no axis.
+    assert bracket_model.symmetries.shape == (1, 4, 4)
+    assert bracket_model.symmetry_axis is None
+    assert bracket_model.symmetry_group().is_continuous is False
+    flip = np.diag([1.0, -1.0, -1.0, 1.0])
+    sym = replace(bracket_model, symmetries=np.stack([np.eye(4), flip]),
+                  symmetry_axis=np.array([1.0, 0.0, 0.0, 0.0, 0.0, 5.0]))
+    arrays, meta = model_to_arrays(sym)
+    back = model_from_arrays(arrays, meta)
+    group = back.symmetry_group()
+    assert isinstance(group, Symmetries) and group.is_continuous
+    np.testing.assert_array_equal(group.continuous_offset, [0.0, 0.0, 5.0])
+    np.testing.assert_array_equal(back.symmetries, sym.symmetries)

@@ -221,3 +221,21 @@ def test_min_rotation_error_without_symmetry_is_plain_angle():
     R2 = Rotation.from_euler("xyz", [12, 18, 33], degrees=True).as_matrix()
     assert min_rotation_error_deg(R1, R2, Symmetries.none()) == pytest.approx(
         rotation_angle_deg(R1, R2))
+
+
+def test_canonical_pose_is_the_same_from_every_equivalent():
+    """The pose reported for a symmetric part is the canonical one:
+    applying any symmetry to it and canonicalising again gives it back."""
+    from viewloc_core.pose import Pose
+    from viewloc_core.symmetry import Symmetries, canonical_pose
+
+    sym = Symmetries(np.stack([np.eye(4), np.diag([1.0, -1.0, -1.0, 1.0])]),
+                     np.array([1.0, 0.0, 0.0]), np.zeros(3))
+    rng = np.random.default_rng(4)
+    for _ in range(5):
+        R = Rotation.random(random_state=int(rng.integers(1 << 30))).as_matrix()
+        pose = canonical_pose(Pose(R, np.array([1.0, 2.0, 500.0])), sym)
+        spun = Rotation.from_rotvec([rng.uniform(0, 2 * np.pi), 0, 0]).as_matrix()
+        other = Pose(pose.R_m2c @ spun @ np.diag([1.0, -1.0, -1.0]), pose.t_m2c)
+        again = canonical_pose(other, sym)
+        np.testing.assert_allclose(again.R_m2c, pose.R_m2c, atol=1e-6)
