@@ -6,6 +6,7 @@ import itertools
 import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -115,6 +116,12 @@ def test_worker_learns_through_the_api_cancels_and_records_dead_horses(
         job_id, object_id = r.json()["job"]["job_id"], r.json()["object"]["object_id"]
         time.sleep(0.3)
         assert client.get(f"/v1/jobs/{job_id}").json()["state"] == "queued"
+        # Redis loses its messages (restart without persistence): the store is
+        # the truth, and the API's reconciliation enqueues the job again.
+        queue = srv.app.state.runner.bridge.queue
+        assert queue.count == 1
+        srv.app.state.runner.connection.flushdb()
+        _wait(lambda: queue.count == 1, 3 * STALE_S, "the job to be enqueued again")
 
         start_worker()
         job = wait_job(client, job_id, timeout=40)
@@ -184,6 +191,21 @@ def test_killed_worker_job_is_requeued_and_finished_by_another_worker(
         assert job["state"] == "succeeded", job
         assert store.get_job(job_id).attempts == 2
         assert store.job_counts()["running"] == 0
+
+
+def test_unreachable_redis_keeps_jobs_queued_and_the_service_unready(
+    make_server: Callable[..., LiveServer],
+) -> None:
+    with socket.socket() as s:  # a port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        dead_url = f"redis://127.0.0.1:{s.getsockname()[1]}/0"
+    srv = _redis_server(make_server, dead_url, TEST_TASKS)
+    with httpx.Client(base_url=srv.url, timeout=30) as client:
+        assert client.get("/healthz").status_code == 200
+        assert client.get("/readyz").status_code == 503
+        r = upload_mesh(client)
+        assert r.status_code == 202, r.text
+        assert client.get(f"/v1/jobs/{r.json()['job']['job_id']}").json()["state"] == "queued"
 
 
 def test_worker_process_imports_neither_fastapi_nor_gl() -> None:
