@@ -73,7 +73,7 @@ def test_bad_input_is_4xx_problem_json_and_leaves_the_store_intact(
     with httpx.Client(base_url=srv.url, timeout=30) as c:
         good = upload_mesh(c).json()
         oid = good["object"]["object_id"]
-        wait_job(c, good["job"]["job_id"])
+        # Its (test) job writes only to the database, which the comparison leaves out.
         files_before = sorted(p.relative_to(tmp_path) for p in (tmp_path / "var").rglob("*")
                               if p.is_file() and "sqlite" not in p.name)
         image = ("s.png", png(), "image/png")

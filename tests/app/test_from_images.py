@@ -14,7 +14,7 @@ import pytest
 from model_store import ModelStore
 from model_store.files import decode_arrays
 from tests.app.conftest import TEST_TASKS, LiveServer
-from tests.app.helpers import CAMERA, assert_problem, png, wait_job
+from tests.app.helpers import CAMERA, assert_problem, png
 from tests.viewloc_core.conftest import l_bracket, render_scene
 from viewloc_client import ViewlocClient
 from viewloc_core import metrics as vm
@@ -155,7 +155,8 @@ def test_from_images_bad_input_is_4xx_naming_the_field(
     two = [("images", img), ("images", img)]
     with httpx.Client(base_url=srv.url, timeout=30) as c:
         good = post(two, _spec()).json()
-        wait_job(c, good["job"]["job_id"])
+        assert good["object"]["training_views"] == 2
+        # Its (test) job writes only to the database, which the comparison leaves out.
         files_before = sorted(p.relative_to(tmp_path) for p in (tmp_path / "var").rglob("*")
                               if p.is_file() and "sqlite" not in p.name)
         cases: list[tuple[httpx.Response, int, str | None]] = [
