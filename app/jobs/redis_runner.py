@@ -41,12 +41,12 @@ from typing import Any
 from redis import Redis
 from redis.exceptions import RedisError
 from rq import Queue, SpawnWorker
-from rq.exceptions import DuplicateJobError, NoSuchJobError
+from rq.exceptions import DuplicateJobError, InvalidJobOperation, NoSuchJobError
 from rq.job import Job, JobStatus
 
 from app.jobs.execute import execute_job, watch_parent
 from app.settings import Settings
-from model_store import JobRecord, ModelStore, new_id
+from model_store import JobNotFoundError, JobRecord, ModelStore, new_id
 
 log = logging.getLogger("viewloc.jobs")
 
@@ -130,7 +130,8 @@ class QueueBridge:
     def cancel_queued(self, job_id: str) -> None:
         """Drop the RQ message of a store job that was cancelled before it ran."""
         job = self.store.get_job(job_id)
-        with contextlib.suppress(NoSuchJobError):
+        # Already gone or cancelled is fine: a worker skips a cancelled job anyway.
+        with contextlib.suppress(NoSuchJobError, InvalidJobOperation):
             Job.fetch(rq_job_id(job), connection=self.connection).cancel()
 
     def reconcile(self, stale_after_s: float) -> list[tuple[str, str]]:
@@ -328,36 +329,57 @@ class ViewlocWorker(SpawnWorker):
         self.store, self.owner, self.cancel_grace_s = store, owner, cancel_grace_s
         self._store_job_id = None
         self._cancel_seen_at = None
+        # Held while the current job changes and while strays are looked for,
+        # so a job that is just starting is never taken for a stray.
+        self._job_lock = threading.Lock()
 
     def handle_work_horse_killed(self, job: Job, retpid: Any, ret_val: Any, rusage: Any) -> None:
         self._horse_status = ret_val
         super().handle_work_horse_killed(job, retpid, ret_val, rusage)
 
-    def monitor_work_horse(self, job: Job, queue: Queue, execution: Any) -> None:
-        store_job_id = str(job.args[0]) if job.args else None
-        self._horse_status, self._cancel_seen_at = None, None
-        self._store_job_id = store_job_id
+    def execute_job(self, job: Job, queue: Queue) -> None:
+        with self._job_lock:
+            self._store_job_id = str(job.args[0]) if job.args else None
+            self._horse_status, self._cancel_seen_at = None, None
         try:
-            super().monitor_work_horse(job, queue, execution)
+            super().execute_job(job, queue)
         finally:
-            self._store_job_id = None
-            if store_job_id is not None:
-                self._settle(store_job_id)
+            with self._job_lock:
+                store_job_id, self._store_job_id = self._store_job_id, None
+                if store_job_id is not None:
+                    try:
+                        self._settle(store_job_id, _exit_reason(self._horse_status))
+                    except Exception:  # settle_strays retries from the maintenance thread
+                        log.exception("could not record the outcome of job %s", store_job_id)
 
-    def _settle(self, job_id: str) -> None:
-        """Record an outcome for a job whose horse ended while it was still running here."""
+    def _settle(self, job_id: str, reason: str) -> None:
+        """Record an outcome for a job of ours still ``running`` although its horse ended."""
         try:
             record = self.store.get_job(job_id)
-        except Exception:  # deleted meanwhile, or a message this store does not know
+        except JobNotFoundError:  # a message of another store
             return
         if record.state != "running" or record.owner != self.owner:
             return
         if record.cancel_requested:
             self.store.finish_job(job_id, "cancelled", "cancelled on request")
             return
-        reason = _exit_reason(self._horse_status)
         if self.store.finish_job(job_id, "failed", reason):
             log.error("job %s: %s", job_id, reason)
+
+    def settle_strays(self) -> None:
+        """Between jobs, no job may be ``running`` for this worker: fail any that is.
+
+        Our heartbeat keeps the store's recovery away from our jobs, so one
+        whose outcome could not be recorded when its horse ended would
+        otherwise stay running for as long as this worker lives.
+        """
+        with self._job_lock:
+            if self._store_job_id is not None:
+                return
+            for record in self.store.list_jobs("running"):
+                if record.owner == self.owner:
+                    self._settle(record.job_id, "the learning process ended without "
+                                                "recording a result")
 
     def enforce_cancellation(self) -> None:
         """Kill the horse of a cancelled job once its grace period is over."""
@@ -418,6 +440,7 @@ def run_worker(settings: Settings, *, burst: bool = False, name: str | None = No
         worker.enforce_cancellation()
         if now - last["reconcile"] >= stale / 2:
             last["reconcile"] = now
+            worker.settle_strays()
             bridge.reconcile(stale)
 
     loop = _Periodic("viewloc-worker-maintenance", 0.25, step)

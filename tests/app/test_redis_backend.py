@@ -15,9 +15,11 @@ from pathlib import Path
 
 import httpx
 import pytest
+from redis import Redis
+from rq import Queue
 
 from app.jobs.base import JobRunner
-from app.jobs.redis_runner import RedisJobRunner
+from app.jobs.redis_runner import RedisJobRunner, ViewlocWorker
 from model_store import JobRecord, ModelStore
 from tests.app.conftest import TEST_TASKS, LiveServer
 from tests.app.helpers import upload_mesh, wait_job
@@ -206,6 +208,25 @@ def test_unreachable_redis_keeps_jobs_queued_and_the_service_unready(
         r = upload_mesh(client)
         assert r.status_code == 202, r.text
         assert client.get(f"/v1/jobs/{r.json()['job']['job_id']}").json()["state"] == "queued"
+
+
+def test_idle_worker_fails_a_job_left_running_under_its_name(tmp_path: Path,
+                                                             redis_url: str) -> None:
+    store = ModelStore(tmp_path)
+    connection = Redis.from_url(redis_url)
+    worker = ViewlocWorker([Queue("viewloc", connection=connection)], connection=connection)
+    worker.attach(store, "f" * 32, cancel_grace_s=1.0)
+    _, job = store.create_object(name="x", source="mesh", kind="sleepy", upload=b"x",
+                                 upload_suffix="bin", upload_meta={})
+    _, other = store.create_object(name="y", source="mesh", kind="sleepy", upload=b"x",
+                                   upload_suffix="bin", upload_meta={})
+    assert store.claim_job(job.job_id, worker.owner) is not None
+    assert store.claim_job(other.job_id, "e" * 32) is not None
+    worker.settle_strays()
+    left = store.get_job(job.job_id)
+    assert left.state == "failed" and "without recording a result" in (left.error or "")
+    assert store.get_job(other.job_id).state == "running"  # another runner's job
+    connection.close()
 
 
 def test_worker_process_imports_neither_fastapi_nor_gl() -> None:
