@@ -31,6 +31,11 @@ class Settings(BaseSettings):
     max_images_total_bytes: int = Field(
         default=512 * 1024 * 1024, gt=0, description="Largest from-images request body."
     )
+    max_images_decoded_bytes: int = Field(
+        default=1024 * 1024 * 1024, gt=0,
+        description="Largest decoded size (all pixels, bytes) of one from-images upload; the "
+        "images are stored decoded, so this bounds memory and disk per object.",
+    )
     job_workers: int = Field(default=1, ge=1, description="Learning jobs executing at once.")
     job_backend: Literal["local", "redis"] = Field(
         default="local", description="Where learning jobs run."

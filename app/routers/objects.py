@@ -154,10 +154,24 @@ def create_object_from_images(
     check_learning_spec(parsed.learning)
     arrays: dict[str, np.ndarray] = {}
     size: tuple[int, int] | None = None
+    decoded = 0
+
+    def count(field: str, nbytes: int) -> None:
+        # Compressed files can be small and their pixels huge: bound what is kept.
+        nonlocal decoded
+        decoded += nbytes
+        if decoded > settings.max_images_decoded_bytes:
+            raise ProblemError(
+                413, f"the decoded images exceed {settings.max_images_decoded_bytes} bytes",
+                "too-large", [(field, "decoded images larger than "
+                               f"{settings.max_images_decoded_bytes} bytes in total")],
+            )
+
     for i, upload in enumerate(images):
         field = f"images[{i}]"
         img = decode_image(read_limited(upload, settings.max_image_bytes, field), field,
                            settings.max_image_pixels)
+        count(field, img.nbytes)
         if size is None:
             size = (img.shape[1], img.shape[0])
         elif (img.shape[1], img.shape[0]) != size:
@@ -175,6 +189,7 @@ def create_object_from_images(
                                  f"{size[0]}x{size[1]}" if size else "bad size")])
         arrays[f"mask_{i:04d}"] = (m.reshape(m.shape[0], m.shape[1], -1).max(axis=2) > 0).astype(
             np.uint8)
+        count(field, arrays[f"mask_{i:04d}"].nbytes)
     assert size is not None  # FastAPI requires at least one image
     cam = parsed.camera
     if (cam.width is not None and cam.width != size[0]) or (

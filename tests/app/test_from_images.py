@@ -144,7 +144,7 @@ def test_from_images_bad_input_is_4xx_naming_the_field(
     make_server: Callable[..., LiveServer], tmp_path: Path
 ) -> None:
     srv = make_server(tasks={**TEST_TASKS, "learn_images": TEST_TASKS["sleepy"]}, max_images=4,
-                      max_image_pixels=1_000_000)
+                      max_image_pixels=1_000_000, max_images_decoded_bytes=600_000)
     url = "/v1/objects/from-images"
     img = ("a.png", png(), "image/png")
     mask = ("m.png", png(channels=1), "image/png")
@@ -211,6 +211,10 @@ def test_from_images_bad_input_is_4xx_naming_the_field(
         assert files_after == files_before
         assert [o["object_id"] for o in c.get("/v1/objects").json()["objects"]] == [
             good["object"]["object_id"]]
+        # Small files, big pixels: the decoded total is bounded (320x240x3 = 230400 bytes each).
+        r = post([("images", img)] * 3, _spec(3))
+        assert_problem(r, 413, "images[2]")
+        assert len(c.get("/v1/objects").json()["objects"]) == 1
         # 16-bit grey photos with colour masks are fine: stored as given, masks as 0/1.
         grey16 = ("g.png", png(channels=1, dtype=np.uint16), "image/png")
         r = post([("images", grey16), ("masks", ("m.png", png(), "image/png"))], _spec(1))
