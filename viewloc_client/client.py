@@ -152,17 +152,34 @@ class ViewlocClient:
         body = r.json()
         return ObjectInfo.from_json(body["object"]), JobInfo.from_json(body["job"])
 
-    def learn_images(self, images: list[bytes], camera: dict[str, Any] | Any,
+    def learn_images(self, images: list[bytes | str | Path], camera: dict[str, Any] | Any,
                      views: list[dict[str, float]], object_diameter_mm: float, *,
-                     masks: list[bytes] | None = None, name: str = "",
+                     masks: list[bytes | str | Path] | None = None, name: str = "",
                      learning: dict[str, Any] | None = None) -> tuple[ObjectInfo, JobInfo]:
-        """Upload real images with known viewing angles (PNG/JPEG/TIFF/BMP bytes)."""
+        """Upload real images with known viewing angles (paper §4.1, API.md from-images).
+
+        Parameters
+        ----------
+        images : list of bytes or paths
+            PNG, JPEG, TIFF or BMP files (8/16-bit, grey or colour), one camera.
+        camera : dict or Camera-like
+            ``{fx, fy, cx, cy[, dist]}`` of the camera that took them, pixels.
+        views : list of dict
+            One per image: ``azimuth_deg``, ``polar_deg``, ``distance_mm`` and
+            optionally ``inplane_deg`` (default 0); the object origin is on the
+            optical axis at ``distance_mm``.
+        object_diameter_mm : float
+        masks : list of bytes or paths, optional
+            Same count and order as ``images``; non-zero = object.
+        name, learning
+            Object name and optional learning options.
+        """
         spec: dict[str, Any] = {"name": name, "camera": json.loads(_camera_json(camera)),
                                 "object_diameter_mm": object_diameter_mm, "views": views}
         if learning:
             spec["learning"] = learning
-        files = [("images", (f"image_{i}.png", b)) for i, b in enumerate(images)]
-        files += [("masks", (f"mask_{i}.png", b)) for i, b in enumerate(masks or [])]
+        files = [("images", _file(b, f"image_{i}")) for i, b in enumerate(images)]
+        files += [("masks", _file(b, f"mask_{i}")) for i, b in enumerate(masks or [])]
         r = self._request("POST", "/v1/objects/from-images", files=files,
                           data={"spec": json.dumps(spec)})
         body = r.json()

@@ -53,7 +53,7 @@ def test_learn_from_images_and_localize_through_http(
     cam = Camera(520.0, 520.0, 159.5, 119.5, 320, 240)
     rng = np.random.default_rng(1)
     directions = view_directions(1)
-    images: list[bytes] = []
+    images: list[bytes | Path] = []
     masks: list[bytes] = []
     views: list[dict[str, float]] = []
     sent_arrays: dict[int, np.ndarray] = {}
@@ -70,7 +70,12 @@ def test_learn_from_images_and_localize_through_http(
                                    background_rgb=(30, 30, 30))
             # Formats a QA station produces: mostly PNG, some JPEG and TIFF.
             ext = ".jpg" if i % 7 == 3 else ".tiff" if i % 11 == 5 else ".png"
-            images.append(_encode(shot.color, ext))
+            if i % 5 == 0:  # the client also takes files on disk
+                path = tmp_path / f"photo_{i}{ext}"
+                path.write_bytes(_encode(shot.color, ext))
+                images.append(path)
+            else:
+                images.append(_encode(shot.color, ext))
             if ext != ".jpg":
                 sent_arrays[i] = shot.color
             masks.append(_encode(shot.mask.astype(np.uint8) * 255, ".bmp" if i == 2 else ".png"))
