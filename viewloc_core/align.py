@@ -88,7 +88,7 @@ class AlignConfig:
     hypotheses_per_peak: int = 5
     max_scored: int = 16
     max_hypotheses: int = 5
-    max_alternatives: int = 3
+    max_alternatives: int = 2
     min_coverage: float = 0.25
     icp_radii_px: tuple[float, ...] = (4.0, 2.5, 1.5, 1.5)
     coarse_radii_px: tuple[float, ...] = (8.0, 4.0)

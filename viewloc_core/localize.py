@@ -156,7 +156,7 @@ def _to_full_resolution(sim_level: NDArray[np.float64], factor: float) -> Simila
 
 #: Refinement settings of the quick 6D check that chooses among alternative
 #: views at one location: the coarse level only, a few iterations.
-QUICK_REFINE = RefineOptions(iterations=(0, 4), shift_search_px=12.0, measure_chance=False)
+QUICK_REFINE = RefineOptions(iterations=(0, 3), shift_search_px=12.0, measure_chance=False)
 
 
 def _pose_centred(
@@ -195,7 +195,7 @@ NEIGHBOUR_VIEW_DEG = 20.0
 
 #: A quick check that confirms this share of the contour needs no other start
 #: (true poses: median 0.90 on the paper set).
-GOOD_FIT_FRACTION = 0.8
+GOOD_FIT_FRACTION = 0.75
 
 _DIRECTIONS_CACHE: weakref.WeakKeyDictionary[ObjectModel, NDArray[np.float64]] = (
     weakref.WeakKeyDictionary()
