@@ -18,6 +18,7 @@ give the same features.
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 
 import cv2
@@ -354,16 +355,20 @@ def _empty_features(shape: tuple[int, int]) -> ImageFeatures:
     )
 
 
-_LSD = None
+#: One LSD detector per thread: OpenCV's detector keeps state between calls
+#: and crashes the process when two threads use one (the service localizes
+#: concurrent requests in a thread pool).
+_LSD_PER_THREAD = threading.local()
 
 
 def _segments(grey8: NDArray[np.uint8], config: FeatureConfig,
               mask: NDArray[np.bool_] | None) -> F32:
     """Straight segments by LSD; (S, 4) float32 end points."""
-    global _LSD
-    if _LSD is None:
-        _LSD = cv2.createLineSegmentDetector(cv2.LSD_REFINE_NONE)
-    lines = _LSD.detect(grey8)[0]
+    lsd = getattr(_LSD_PER_THREAD, "detector", None)
+    if lsd is None:
+        lsd = cv2.createLineSegmentDetector(cv2.LSD_REFINE_NONE)
+        _LSD_PER_THREAD.detector = lsd
+    lines = lsd.detect(grey8)[0]
     if lines is None:
         return np.zeros((0, 4), np.float32)
     seg = lines.reshape(-1, 4).astype(np.float32)

@@ -93,3 +93,26 @@ def test_rejects_unusable_images(bad):
 def test_blank_image_has_no_features():
     feats = extract_features(np.full((64, 64), 128, np.uint8))
     assert len(feats.edge_xy) == 0 and len(feats.grouped) == 0
+
+
+def test_concurrent_extraction_in_threads_is_safe_and_identical():
+    """The service extracts features of concurrent requests in a thread pool;
+    a detector shared between threads used to crash the process."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from viewloc_core.features import extract_features
+
+    rng = np.random.default_rng(0)
+    images = []
+    for _ in range(4):
+        img = np.full((240, 320), 40, np.uint8)
+        for _ in range(30):
+            p, q = rng.integers(0, [320, 240], size=(2, 2))
+            cv2.line(img, tuple(map(int, p)), tuple(map(int, q)), int(rng.integers(90, 255)), 2)
+        images.append(img)
+    expected = [extract_features(im).segments for im in images]
+    with ThreadPoolExecutor(max_workers=4) as pool:
+        for _ in range(5):
+            got = list(pool.map(lambda im: extract_features(im).segments, images))
+            for a, b in zip(expected, got, strict=True):
+                np.testing.assert_array_equal(a, b)
