@@ -197,9 +197,11 @@ class HttpBackend:
     """The same through the HTTP API (API.md): upload the mesh, wait for the job, localize.
 
     An object the service already learned from the same mesh bytes with the
-    same seed (recognised by its name, which carries both) is reused instead
-    of learned again, so repeated runs against one service measure
-    localization only; ``reuse=False`` always uploads.
+    same seed and learning options (recognised by its name, which carries
+    them) is reused instead of learned again, so repeated runs against one
+    service measure localization only; ``reuse=False`` always uploads.
+    ``learning`` is sent as the upload's ``spec.learning`` (default: the
+    service's defaults, which are the core backend's).
     """
 
     def __init__(
@@ -211,6 +213,7 @@ class HttpBackend:
         api_key: str | None = None,
         seed: int = 0,
         reuse: bool = True,
+        learning: dict[str, Any] | None = None,
     ) -> None:
         import httpx
 
@@ -222,6 +225,7 @@ class HttpBackend:
         self.learn_timeout_s = learn_timeout_s
         self.seed = seed
         self.reuse = reuse
+        self.learning = {**(learning or {}), "seed": seed}
         self.label = f"http {self.url}"
 
     def check(self) -> None:
@@ -244,9 +248,8 @@ class HttpBackend:
         return body
 
     def object_name(self, obj: BenchObject, mesh_bytes: bytes) -> str:
-        """Name under which the service keeps ``obj``: bench name, mesh digest, seed."""
-        digest = hashlib.sha256(mesh_bytes).hexdigest()[:16]
-        return f"bench:{obj.name}:{digest}:seed{self.seed}"
+        """Name under which the service keeps ``obj`` (see :func:`bench_object_name`)."""
+        return bench_object_name(obj.name, mesh_bytes, self.learning)
 
     def _wait(self, obj: BenchObject, job_id: str, t0: float) -> dict[str, Any]:
         while True:
@@ -274,7 +277,7 @@ class HttpBackend:
                 "/v1/objects",
                 files={"mesh": (obj.mesh_path.name, mesh_bytes, "application/octet-stream")},
                 data={"spec": json.dumps({"name": name, "units": "mm",
-                                          "learning": {"seed": self.seed}})},
+                                          "learning": self.learning})},
             )
             if r.status_code != 202:
                 raise RuntimeError(f"POST /v1/objects answered {r.status_code}: {r.text[:500]}")
@@ -298,6 +301,19 @@ class HttpBackend:
             info.get("model_views"),
             {"object_id": object_id, "reused": reused},
         )
+
+
+def bench_object_name(name: str, mesh_bytes: bytes, learning: dict[str, Any]) -> str:
+    """``bench:<name>:<mesh digest>:seed<seed>[:learning-<digest>]``: equal names mean
+    the same mesh learned with the same options (the learning digest only when
+    options other than the seed are given)."""
+    digest = hashlib.sha256(mesh_bytes).hexdigest()[:16]
+    out = f"bench:{name}:{digest}:seed{int(learning.get('seed', 0))}"
+    extra = {k: v for k, v in learning.items() if k != "seed"}
+    if extra:
+        text = json.dumps(extra, sort_keys=True).encode()
+        out += f":learning-{hashlib.sha256(text).hexdigest()[:8]}"
+    return out
 
 
 def _job_seconds(job: dict[str, Any]) -> float | None:
