@@ -24,7 +24,8 @@ def test_generated_client_learns_and_localizes(
     learned_barbell: LearnedStore, make_server: Callable[..., LiveServer], tmp_path: Path
 ) -> None:
     learned_barbell.copy_to(tmp_path / "var")
-    srv = make_server(tasks={**TEST_TASKS, "learn_mesh": TEST_TASKS["sleepy"]}, api_keys="gen-key")
+    srv = make_server(tasks={**TEST_TASKS, "learn_mesh": TEST_TASKS["sleepy"],
+                             "learn_images": TEST_TASKS["sleepy"]}, api_keys="gen-key")
     spec_path = tmp_path / "openapi.json"
     spec_path.write_text(httpx.get(f"{srv.url}/openapi.json",
                                    headers={"Authorization": "Bearer gen-key"}).text)
@@ -60,6 +61,25 @@ def test_generated_client_learns_and_localizes(
         # that passed image and camera validation, answered with a parsed Problem.
         assert loc.status_code == 409, loc.content
         assert isinstance(loc.parsed, models.Problem) and loc.parsed.status == 409
+        # From images: a list of files and a JSON spec, as API.md describes.
+        from_images = importlib.import_module(
+            "viewloc_generated.api.objects.create_object_from_images_v1_objects_from_images_post")
+        view = {"azimuth_deg": 10.0, "polar_deg": 80.0, "distance_mm": 500.0}
+        images_body = models.BodyCreateObjectFromImagesV1ObjectsFromImagesPost
+        made = from_images.sync_detailed(client=client, body=images_body(
+            images=[types.File(payload=io.BytesIO(png()), file_name=f"v{i}.png") for i in range(2)],
+            masks=[types.File(payload=io.BytesIO(png(channels=1)), file_name=f"m{i}.png")
+                   for i in range(2)],
+            spec=json.dumps({"name": "photos", "camera": CAMERA, "object_diameter_mm": 60.0,
+                             "views": [view, {**view, "inplane_deg": 15.0}]})))
+        assert made.status_code == 202, made.content
+        assert made.parsed.object_.source == "images" and made.parsed.object_.training_views == 2
+        wrong = from_images.sync_detailed(client=client, body=images_body(
+            images=[types.File(payload=io.BytesIO(png()), file_name="v.png")],
+            spec=json.dumps({"camera": CAMERA, "object_diameter_mm": 60.0, "views": []})))
+        assert wrong.status_code == 422 and isinstance(wrong.parsed, models.Problem)
+        assert [e.field for e in wrong.parsed.errors] == ["spec.views"]
+
         # The barbell learned earlier is ready: a real localization, parsed.
         ok = localize.sync_detailed(
             learned_barbell.object_id, client=client,
