@@ -74,7 +74,11 @@ def create_app(
             runner.stop()
 
     application = FastAPI(
-        title="viewloc", version="1.0.0", description=_DESCRIPTION, lifespan=lifespan
+        title="viewloc", version="1.0.0", description=_DESCRIPTION, lifespan=lifespan,
+        # Starlette refuses more than 1000 files with a bare 400 before a route
+        # runs; from-images may carry max_images images and as many masks, and
+        # its own limit answers 413 naming the field.
+        form_limits={"max_files": max(1000, 2 * settings.max_images + 1)},
     )
     application.state.settings = settings
     application.state.store = None

@@ -229,3 +229,17 @@ def test_from_images_bad_input_is_4xx_naming_the_field(
         assert stored["image_0000"].dtype == np.uint16 and stored["image_0000"].ndim == 2
         assert stored["mask_0000"].ndim == 2 and stored["mask_0000"].max() == 1
         assert record.upload_meta["views"][0]["inplane_deg"] == 0.0
+
+
+def test_from_images_limit_above_1000_files(make_server: Callable[..., LiveServer]) -> None:
+    # 600 images with their masks are 1200 files: past Starlette's default of 1000.
+    srv = make_server(max_images=600)
+    tiny = png(4, 4)
+    files = [("images", ("a.png", tiny, "image/png"))] * 600
+    files += [("masks", ("m.png", tiny, "image/png"))] * 600
+    with httpx.Client(base_url=srv.url, timeout=60) as c:
+        r = c.post("/v1/objects/from-images", files=files, data={"spec": _spec(599)})
+        assert_problem(r, 422, "spec.views")  # reached the route: the counts were checked
+        r = c.post("/v1/objects/from-images", files=files + [("images", files[0][1])],
+                   data={"spec": _spec(601)})
+        assert_problem(r, 413, "images")
