@@ -115,6 +115,12 @@ def test_learn_from_images_and_localize_through_http(
         np.testing.assert_allclose(model.training.polar_deg,
                                    [d.polar_deg for d in directions], atol=1e-6)
 
+        # Without a mesh the overlay draws axes only; it is still the scene's PNG.
+        shown = client.localize(obj.object_id, _encode(scenes[0], ".png"), scene_cam,
+                                overlay=True).overlay_png
+        assert shown is not None
+        overlay = cv2.imdecode(np.frombuffer(shown, np.uint8), cv2.IMREAD_COLOR)
+        assert overlay.shape == (scene_cam.height, scene_cam.width, 3)
         for truth, scene in zip(truths, scenes, strict=True):
             loc = client.localize(obj.object_id, _encode(scene, ".png"), scene_cam)
             assert len(loc.detections) == 1, truth
