@@ -59,6 +59,8 @@ class AlignConfig:
         Peaks of the location vote map searched for hypotheses.
     hypotheses_per_peak : int
         (view, angle, scale) vote bins per peak turned into hypotheses.
+    max_bins : int
+        Best (view, x, y, angle, scale) vote bins turned into hypotheses besides.
     max_scored : int
         Hypotheses (by quick coverage) whose g is computed.
     max_hypotheses : int
@@ -84,8 +86,9 @@ class AlignConfig:
     vote_xy_px: float = 12.0
     vote_angle_deg: float = 20.0
     vote_log2_scale: float = 0.35
-    max_peaks: int = 16
-    hypotheses_per_peak: int = 5
+    max_peaks: int = 12
+    hypotheses_per_peak: int = 4
+    max_bins: int = 40
     max_scored: int = 16
     max_hypotheses: int = 5
     max_alternatives: int = 2
@@ -347,6 +350,31 @@ def extend(
     return current
 
 
+def _vote_bins(views: NDArray[np.int64], sims: F64, weights: F64, config: AlignConfig
+               ) -> tuple[NDArray[np.int64], F64]:
+    """Hypotheses from the ``max_bins`` best-supported (view, x, y, α, s) bins.
+
+    Parameters and returns as :func:`_vote_hypotheses`.
+    """
+    vote = np.maximum(weights, 0.0) + 0.5
+    fields = [
+        np.floor(sims[:, 0] / config.vote_xy_px).astype(np.int64) + 2048,
+        np.floor(sims[:, 1] / config.vote_xy_px).astype(np.int64) + 2048,
+        np.floor((sims[:, 2] + np.pi) / np.radians(config.vote_angle_deg)).astype(np.int64),
+        np.floor(np.log2(sims[:, 3]) / config.vote_log2_scale).astype(np.int64) + 2048,
+    ]
+    # One int64 key per bin (each field offset to be non-negative and < 2^12).
+    key = views.astype(np.int64)
+    for f in fields:
+        key = key * 4096 + np.clip(f, 0, 4095)
+    _, inv = np.unique(key, return_inverse=True)
+    support = np.bincount(inv, weights=vote)
+    top = np.argsort(-support)[: config.max_bins]
+    best = np.array([np.flatnonzero(inv == b)[np.argmax(vote[inv == b])] for b in top],
+                    np.int64)
+    return views[best], sims[best]
+
+
 def _vote_hypotheses(views: NDArray[np.int64], sims: F64, weights: F64,
                      shape: tuple[int, int], config: AlignConfig
                      ) -> tuple[NDArray[np.int64], F64]:
@@ -570,7 +598,13 @@ def align(
     sims, j2, w2 = sims[ok], j2[ok], w2[ok]
     if len(sims) == 0:
         return []
-    hyp_views, hyp_sims = _vote_hypotheses(index.view_of[j2], sims, w2, feats.shape, config)
+    # Two votes, united: per location pooled over views (finds objects whose
+    # evidence is spread over neighbouring views) and per (view, x, y, α, s)
+    # bin (finds objects that one view explains with many consistent seeds).
+    loc_views, loc_sims = _vote_hypotheses(index.view_of[j2], sims, w2, feats.shape, config)
+    bin_views, bin_sims = _vote_bins(index.view_of[j2], sims, w2, config)
+    hyp_views = np.concatenate([loc_views, bin_views])
+    hyp_sims = np.concatenate([loc_sims, bin_sims])
     if len(hyp_views) == 0:
         return []
     # Quick extension of every voted hypothesis on its view's coarse edge
