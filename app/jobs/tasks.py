@@ -74,7 +74,19 @@ def learn_images(
     if len(views) != n:
         raise InvalidInputError("stored views do not match the stored images", "views")
     config = LearningConfig.from_dict(dict(meta.get("learning") or {}))
+    camera = camera_from_meta(meta["camera"])
+    if camera.has_distortion:
+        # The engine takes pinhole images: remove the lens distortion (same K).
+        from app.imaging import undistort
+
+        progress("removing lens distortion", 0.0)
+        distorted = camera
+        images = [undistort(img, distorted)[0] for img in images]
+        if masks is not None:
+            masks = [undistort(m, distorted, nearest=True)[0] for m in masks]
+        camera = Camera(distorted.fx, distorted.fy, distorted.cx, distorted.cy,
+                        distorted.width, distorted.height)
     return learn_from_images(
-        images, masks, camera_from_meta(meta["camera"]), views, float(meta["diameter_mm"]),
+        images, masks, camera, views, float(meta["diameter_mm"]),
         config, progress=progress, rng=None, should_stop=should_stop,
     )

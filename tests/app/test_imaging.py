@@ -1,0 +1,103 @@
+"""Lens distortion: ``app.imaging.undistort`` and the from-images learning task that uses it."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+from app.imaging import undistort
+from app.jobs.tasks import learn_images
+from model_store import ModelStore
+from model_store.files import encode_arrays
+from tests.viewloc_core.conftest import l_bracket
+from viewloc_core.camera import Camera
+from viewloc_core.pose import Pose
+from viewloc_core.view_sphere import view_directions
+
+DIST = (-0.5, 0.2, 0.001, -0.001, 0.0)
+PINHOLE = Camera(400.0, 400.0, 159.5, 119.5, 320, 240)
+LENS = Camera(400.0, 400.0, 159.5, 119.5, 320, 240, DIST)
+
+
+def _distort(image: np.ndarray, camera: Camera, nearest: bool = False) -> np.ndarray:
+    """What ``camera``'s lens makes of a pinhole image with the same K."""
+    h, w = image.shape[:2]
+    uu, vv = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    uv = np.stack([uu.ravel(), vv.ravel()], axis=1)[:, None, :]
+    src = cv2.undistortPoints(uv, camera.K, np.array(camera.dist), P=camera.K)
+    src = src.reshape(h, w, 2).astype(np.float32)
+    flags = cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR
+    return cv2.remap(image, src[..., 0], src[..., 1], flags)
+
+
+def test_undistort_inverts_the_lens_and_keeps_masks_binary() -> None:
+    rng = np.random.default_rng(0)
+    # A smooth pattern, so interpolation errors stay small against the lens's shift.
+    pattern = cv2.GaussianBlur(rng.integers(0, 65535, (240, 320), endpoint=True)
+                               .astype(np.uint16), (0, 0), 4)
+    distorted = _distort(pattern, LENS)
+    restored, cam = undistort(distorted, LENS)
+    assert restored.dtype == np.uint16 and restored.shape == pattern.shape
+    assert not cam.has_distortion and (cam.fx, cam.cx, cam.width) == (400.0, 159.5, 320)
+    inner = (slice(40, 200), slice(50, 270))
+    err_restored = np.abs(restored[inner].astype(float) - pattern[inner]).mean()
+    err_distorted = np.abs(distorted[inner].astype(float) - pattern[inner]).mean()
+    assert err_restored < 0.25 * err_distorted
+    mask = np.zeros((240, 320), np.uint8)
+    mask[60:180, 80:240] = 1
+    m, _ = undistort(_distort(mask, LENS, nearest=True), LENS, nearest=True)
+    assert set(np.unique(m).tolist()) <= {0, 1}
+    assert np.mean(m[inner] != mask[inner]) < 0.01
+    same, cam = undistort(pattern, PINHOLE)
+    assert same is pattern and cam is PINHOLE
+
+
+def _learn(tmp: Path, images: list[np.ndarray], masks: list[np.ndarray], camera: Camera,
+           views: list[dict[str, float]]) -> object:
+    store = ModelStore(tmp)
+    arrays = {f"image_{i:04d}": a for i, a in enumerate(images)}
+    arrays.update({f"mask_{i:04d}": m for i, m in enumerate(masks)})
+    meta = {"count": len(images), "has_masks": True, "views": views, "diameter_mm": 130.0,
+            "learning": {}, "camera": {"fx": camera.fx, "fy": camera.fy, "cx": camera.cx,
+                                       "cy": camera.cy, "dist": list(camera.dist),
+                                       "width": camera.width, "height": camera.height}}
+    _, job = store.create_object(name="photos", source="images", kind="learn_images",
+                                 upload=encode_arrays(arrays), upload_suffix="npz",
+                                 upload_meta=meta, diameter_mm=130.0, training_views=len(images))
+    return learn_images(store, job, lambda stage, fraction: None, lambda: False)
+
+
+def test_learning_from_photos_through_a_lens_removes_the_distortion(tmp_path: Path) -> None:
+    from viewloc_core.render import Renderer
+
+    mesh = l_bracket()
+    mesh.apply_translation(-np.asarray(mesh.bounds).mean(axis=0))
+    pinhole: tuple[list[np.ndarray], list[np.ndarray]] = ([], [])
+    lens: tuple[list[np.ndarray], list[np.ndarray]] = ([], [])
+    views: list[dict[str, float]] = []
+    with Renderer() as renderer:
+        for v in view_directions(0):
+            shot = renderer.render(mesh, PINHOLE, Pose(v.R_m2c, np.array([0.0, 0.0, 260.0])),
+                                   background_rgb=(30, 30, 30))
+            mask = shot.mask.astype(np.uint8)
+            pinhole[0].append(shot.color)
+            pinhole[1].append(mask)
+            lens[0].append(_distort(shot.color, LENS))
+            lens[1].append(_distort(mask, LENS, nearest=True))
+            views.append({"azimuth_deg": v.azimuth_deg, "polar_deg": v.polar_deg,
+                          "distance_mm": 260.0, "inplane_deg": 0.0})
+    truth = _learn(tmp_path / "a", *pinhole, PINHOLE, views)
+    with_dist = _learn(tmp_path / "b", *lens, LENS, views)
+    ignoring = _learn(tmp_path / "c", *lens, PINHOLE, views)
+
+    def edge_gap(model: object) -> float:
+        """Mean distance of each view's edge samples to the pinhole-learned ones (px)."""
+        ref = truth.training.edge_xy  # type: ignore[attr-defined]
+        got = model.training.edge_xy  # type: ignore[attr-defined]
+        return float(np.mean([cKDTree(a).query(b)[0].mean() for a, b in zip(ref, got,
+                                                                             strict=True)]))
+
+    assert edge_gap(with_dist) < 0.7 * edge_gap(ignoring)
