@@ -168,6 +168,10 @@ def _pose_centred(
     )
 
 
+#: Inlier fraction by which an alternative view's quick check must beat the
+#: 2D-ranked view to replace it.
+ALTERNATIVE_MARGIN = 0.1
+
 #: Locations beyond ``max_detections`` that get the final fit, in case the
 #: quick check ranked a true one just below a false one.
 _SPARE_LOCATIONS = 1
@@ -345,7 +349,13 @@ def localize(
                 contour, QUICK_REFINE))
             for t, sl, cov, _ in candidates
         ]
-        best = max(checked, key=lambda c: _quick_rank(c[3]))
+        # The 2D ranking (g and coverage) chose the first; another view
+        # replaces it only when its contour is clearly better confirmed (an
+        # outline and its mirror image can both fit about as well).
+        best = checked[0]
+        for c in checked[1:]:
+            if _quick_rank(c[3]) > _quick_rank(best[3]) + ALTERNATIVE_MARGIN:
+                best = c
         located.append(_Located(match, *best))
     if edges is not None:
         located.sort(key=lambda c: -_quick_rank(c.quick))
