@@ -350,32 +350,52 @@ def extend(
     return current
 
 
-def _vote_bins(views: NDArray[np.int64], sims: F64, weights: F64, config: AlignConfig
+def _bin_keys(views: NDArray[np.int64], sims: F64, config: AlignConfig,
+              with_position: bool) -> NDArray[np.int64]:
+    """One int64 key per seed for its (view, [x, y,] α, s) vote bin.
+
+    Each field is offset to be non-negative and clipped below 2^12, so the
+    packed key stays below 2^63 with all five fields.
+    """
+    fields = []
+    if with_position:
+        fields += [np.floor(sims[:, 0] / config.vote_xy_px).astype(np.int64) + 2048,
+                   np.floor(sims[:, 1] / config.vote_xy_px).astype(np.int64) + 2048]
+    fields += [
+        np.floor((sims[:, 2] + np.pi) / np.radians(config.vote_angle_deg)).astype(np.int64),
+        np.floor(np.log2(sims[:, 3]) / config.vote_log2_scale).astype(np.int64) + 2048,
+    ]
+    key = views.astype(np.int64)
+    for f in fields:
+        key = key * 4096 + np.clip(f, 0, 4095)
+    return key
+
+
+def _strongest_seeds_of_best_bins(keys: NDArray[np.int64], vote: F64,
+                                  n_bins: int) -> NDArray[np.int64]:
+    """Index of the strongest seed in each of the ``n_bins`` best-supported bins, best first."""
+    _, bin_of = np.unique(keys, return_inverse=True)
+    support = np.bincount(bin_of, weights=vote)
+    # Seeds sorted by bin, strongest first within a bin: the first of each
+    # run is its bin's strongest seed (bins come out in order 0, 1, ...).
+    order = np.lexsort((-vote, bin_of))
+    sorted_bins = bin_of[order]
+    strongest = order[np.r_[True, sorted_bins[1:] != sorted_bins[:-1]]]
+    return strongest[np.argsort(-support)[:n_bins]]
+
+
+def _vote_bins(views: NDArray[np.int64], sims: F64, vote: F64, config: AlignConfig
                ) -> tuple[NDArray[np.int64], F64]:
     """Hypotheses from the ``max_bins`` best-supported (view, x, y, α, s) bins.
 
     Parameters and returns as :func:`_vote_hypotheses`.
     """
-    vote = np.maximum(weights, 0.0) + 0.5
-    fields = [
-        np.floor(sims[:, 0] / config.vote_xy_px).astype(np.int64) + 2048,
-        np.floor(sims[:, 1] / config.vote_xy_px).astype(np.int64) + 2048,
-        np.floor((sims[:, 2] + np.pi) / np.radians(config.vote_angle_deg)).astype(np.int64),
-        np.floor(np.log2(sims[:, 3]) / config.vote_log2_scale).astype(np.int64) + 2048,
-    ]
-    # One int64 key per bin (each field offset to be non-negative and < 2^12).
-    key = views.astype(np.int64)
-    for f in fields:
-        key = key * 4096 + np.clip(f, 0, 4095)
-    _, inv = np.unique(key, return_inverse=True)
-    support = np.bincount(inv, weights=vote)
-    top = np.argsort(-support)[: config.max_bins]
-    best = np.array([np.flatnonzero(inv == b)[np.argmax(vote[inv == b])] for b in top],
-                    np.int64)
+    best = _strongest_seeds_of_best_bins(_bin_keys(views, sims, config, True), vote,
+                                         config.max_bins)
     return views[best], sims[best]
 
 
-def _vote_hypotheses(views: NDArray[np.int64], sims: F64, weights: F64,
+def _vote_hypotheses(views: NDArray[np.int64], sims: F64, vote: F64,
                      shape: tuple[int, int], config: AlignConfig
                      ) -> tuple[NDArray[np.int64], F64]:
     """Hypotheses (model view, similarity) from seed votes, location first.
@@ -393,8 +413,8 @@ def _vote_hypotheses(views: NDArray[np.int64], sims: F64, weights: F64,
         Model view of each seed.
     sims : (N, 4) float
         Seed similarities model view -> image.
-    weights : (N,) float
-        Log odds of each seed's pairing.
+    vote : (N,) float
+        Vote of each seed (> 0).
     shape : (int, int)
         Image height and width (px).
     config : AlignConfig
@@ -405,7 +425,6 @@ def _vote_hypotheses(views: NDArray[np.int64], sims: F64, weights: F64,
     sims : (H, 4) float64
     """
     cell = config.vote_xy_px / 2.0
-    vote = np.maximum(weights, 0.0) + 0.5
     h, w = shape
     gx = np.floor(sims[:, 0] / cell).astype(np.int64) + 2
     gy = np.floor(sims[:, 1] / cell).astype(np.int64) + 2
@@ -418,29 +437,15 @@ def _vote_hypotheses(views: NDArray[np.int64], sims: F64, weights: F64,
     py, px = np.nonzero(peaks)
     order = np.argsort(-acc[py, px])[: config.max_peaks]
     centres = np.stack([(px[order] - 2 + 0.5) * cell, (py[order] - 2 + 0.5) * cell], axis=1)
-    # Bins of (view, angle, scale), shared by all peaks.
-    key = views.astype(np.int64)
-    key = key * 64 + np.floor((sims[:, 2] + np.pi) / np.radians(config.vote_angle_deg)).astype(
-        np.int64)
-    key = key * 64 + np.clip(
-        np.floor(np.log2(sims[:, 3]) / config.vote_log2_scale).astype(np.int64) + 32, 0, 63)
-    out_views: list[NDArray[np.int64]] = []
-    out_sims: list[F64] = []
+    keys = _bin_keys(views, sims, config, False)
+    picked = []
     for c in centres:
         near = np.flatnonzero(np.hypot(sims[:, 0] - c[0], sims[:, 1] - c[1]) < 2.0 * cell)
-        if len(near) == 0:
-            continue
-        uniq, inv = np.unique(key[near], return_inverse=True)
-        support = np.bincount(inv, weights=vote[near])
-        top = np.argsort(-support)[: config.hypotheses_per_peak]
-        for b in top:
-            members = near[inv == b]
-            best = members[np.argmax(vote[members])]
-            out_views.append(views[best:best + 1])
-            out_sims.append(sims[best:best + 1])
-    if not out_views:
-        return np.zeros(0, np.int64), np.zeros((0, 4))
-    return np.concatenate(out_views), np.concatenate(out_sims)
+        if len(near):
+            picked.append(near[_strongest_seeds_of_best_bins(
+                keys[near], vote[near], config.hypotheses_per_peak)])
+    best = np.concatenate(picked) if picked else np.zeros(0, np.int64)
+    return views[best], sims[best]
 
 
 def _coverage_many(feats: ImageFeatures, sims: F64, pts: F64, bins: NDArray[np.int64],
@@ -601,8 +606,10 @@ def align(
     # Two votes, united: per location pooled over views (finds objects whose
     # evidence is spread over neighbouring views) and per (view, x, y, α, s)
     # bin (finds objects that one view explains with many consistent seeds).
-    loc_views, loc_sims = _vote_hypotheses(index.view_of[j2], sims, w2, feats.shape, config)
-    bin_views, bin_sims = _vote_bins(index.view_of[j2], sims, w2, config)
+    # A seed's vote is its positive log odds (plus a floor, so any seed counts).
+    vote = np.maximum(w2, 0.0) + 0.5
+    loc_views, loc_sims = _vote_hypotheses(index.view_of[j2], sims, vote, feats.shape, config)
+    bin_views, bin_sims = _vote_bins(index.view_of[j2], sims, vote, config)
     hyp_views = np.concatenate([loc_views, bin_views])
     hyp_sims = np.concatenate([loc_sims, bin_sims])
     if len(hyp_views) == 0:

@@ -47,6 +47,29 @@ from viewloc_core.symmetry import canonical_pose
 #: Images larger than this (longest side, px) are searched on a pyramid level.
 MAX_SEARCH_SIDE_PX = 700
 
+#: Refinement settings of the quick 6D check that chooses among alternative
+#: views at one location: the coarse level only, a few iterations.
+QUICK_REFINE = RefineOptions(iterations=(0, 3), shift_search_px=12.0, measure_chance=False)
+
+#: The final refinement; its chance rate is not used here, so not measured.
+FINAL_REFINE = RefineOptions(measure_chance=False)
+
+#: Inlier fraction by which an alternative view's quick check must beat the
+#: 2D-ranked view to replace it.
+ALTERNATIVE_MARGIN = 0.1
+
+#: Locations beyond ``max_detections`` that get the final fit, in case the
+#: quick check ranked a true one just below a false one.
+SPARE_LOCATIONS = 1
+
+#: Training views closer than this to the chosen one are tried as starts of
+#: the final refinement (about one view spacing of level 2).
+NEIGHBOUR_VIEW_DEG = 20.0
+
+#: A quick check that confirms this share of the contour needs no other start
+#: (true poses: median 0.90 on the paper set).
+GOOD_FIT_FRACTION = 0.75
+
 
 @dataclass(frozen=True, slots=True)
 class LocalizeOptions:
@@ -111,12 +134,9 @@ def _contour_model(model: ObjectModel) -> ContourModel | None:
 
 def _member_view(
     model: ObjectModel, match: Match2D, feats: ImageFeatures
-) -> tuple[int, NDArray[np.float64], float]:
-    """Member training view of the matched model view that fits the image best.
-
-    Returns the training view index, the similarity training-view frame ->
-    image and its coverage.
-    """
+) -> tuple[int, NDArray[np.float64]]:
+    """Member training view of the matched model view that fits the image best
+    (by coverage): its index and the similarity training-view frame -> image."""
     tr = model.training
     members = np.flatnonzero(tr.model_view == match.model_view)
     best = (-1.0, int(members[0]), match.sim)
@@ -126,7 +146,7 @@ def _member_view(
         cov = coverage(feats, sim_t, pts, orientation_bin(tr.edge_theta[t]))
         if cov > best[0]:
             best = (cov, int(t), sim_t)
-    return best[1], best[2], best[0]
+    return best[1], best[2]
 
 
 def _refit_at_model_scale(
@@ -154,11 +174,6 @@ def _to_full_resolution(sim_level: NDArray[np.float64], factor: float) -> Simila
     return sim2.to_similarity2d(sim_full)
 
 
-#: Refinement settings of the quick 6D check that chooses among alternative
-#: views at one location: the coarse level only, a few iterations.
-QUICK_REFINE = RefineOptions(iterations=(0, 3), shift_search_px=12.0, measure_chance=False)
-
-
 def _pose_centred(
     model: ObjectModel, t_view: int, similarity: Similarity2D, camera: Camera
 ) -> Pose:
@@ -168,15 +183,6 @@ def _pose_centred(
     )
 
 
-#: Inlier fraction by which an alternative view's quick check must beat the
-#: 2D-ranked view to replace it.
-ALTERNATIVE_MARGIN = 0.1
-
-#: Locations beyond ``max_detections`` that get the final fit, in case the
-#: quick check ranked a true one just below a false one.
-_SPARE_LOCATIONS = 1
-
-
 @dataclass(frozen=True, slots=True, eq=False)
 class _Located:
     """The chosen view at one image location, before the final fit."""
@@ -184,7 +190,6 @@ class _Located:
     match: Match2D
     t_view: int
     sim_level: NDArray[np.float64]
-    coverage: float
     quick: RefinementResult | None
 
 
@@ -192,14 +197,6 @@ def _quick_rank(result: RefinementResult | None) -> float:
     """Ranking key of a quick 6D check: share of the contour that found its edge."""
     return -1.0 if result is None else float(result.inlier_fraction)
 
-
-#: Training views closer than this to the chosen one are tried as starts of
-#: the final refinement (about one view spacing of level 2).
-NEIGHBOUR_VIEW_DEG = 20.0
-
-#: A quick check that confirms this share of the contour needs no other start
-#: (true poses: median 0.90 on the paper set).
-GOOD_FIT_FRACTION = 0.75
 
 _DIRECTIONS_CACHE: weakref.WeakKeyDictionary[ObjectModel, NDArray[np.float64]] = (
     weakref.WeakKeyDictionary()
@@ -245,7 +242,7 @@ def _final_detection(
             ]
         best_start = max(starts, key=_quick_rank) if starts else None
         start = best_start.pose if best_start is not None else pose_centred
-        result = refine_pose(edges, camera, start, contour)
+        result = refine_pose(edges, camera, start, contour, FINAL_REFINE)
         if best_start is not None and _quick_rank(best_start) > _quick_rank(result):
             result = best_start
         moved = np.linalg.norm(result.pose.t_m2c - pose_centred.t_m2c)
@@ -336,32 +333,31 @@ def localize(
     # Pass 1: per image location, the view that explains the image best.
     located: list[_Located] = []
     for match in matches:
-        candidates = [(*_member_view(model, m, feats), None)
-                      for m in (match, *match.alternatives)]
+        candidates = [_member_view(model, m, feats) for m in (match, *match.alternatives)]
         if contour is None or edges is None:
-            located.append(_Located(match, *candidates[0]))
+            located.append(_Located(match, *candidates[0], None))
             continue
         # A short 6D refinement of each alternative view tells which one
         # explains the image edges; the 2D similarity cannot.
         checked = [
-            (t, sl, cov, refine_pose(
+            (t, sl, refine_pose(
                 edges, camera, _pose_centred(model, t, _to_full_resolution(sl, factor), camera),
                 contour, QUICK_REFINE))
-            for t, sl, cov, _ in candidates
+            for t, sl in candidates
         ]
         # The 2D ranking (g and coverage) chose the first; another view
         # replaces it only when its contour is clearly better confirmed (an
         # outline and its mirror image can both fit about as well).
         best = checked[0]
         for c in checked[1:]:
-            if _quick_rank(c[3]) > _quick_rank(best[3]) + ALTERNATIVE_MARGIN:
+            if _quick_rank(c[2]) > _quick_rank(best[2]) + ALTERNATIVE_MARGIN:
                 best = c
         located.append(_Located(match, *best))
     if edges is not None:
         located.sort(key=lambda c: -_quick_rank(c.quick))
     # Pass 2: final fit of the best locations only.
     detections: list[Detection] = []
-    for loc in located[: options.max_detections + _SPARE_LOCATIONS]:
+    for loc in located[: options.max_detections + SPARE_LOCATIONS]:
         det = _final_detection(model, loc, level, factor, camera, edges, contour,
                                index.view_radius_px)
         if det.score >= min_score:
