@@ -1,10 +1,12 @@
 """Localize a learned object in a scene image: 2D alignment, 6D pose, refinement.
 
 DESIGN.md §2 steps 6-8: features of the scene (on a pyramid level small enough
-to stay fast), probabilistic alignment of the model views, the best-fitting
-training view of each matched model view, the 6D pose from the similarity
-(paper §4.2) and, when the model has a contour model, the refinement against
-image edges (§5.2's scene-based tracking).
+to stay fast), probabilistic alignment of the model views, at each matched
+location a search over all training views for the one that explains the image
+edges best (:mod:`viewloc_core.view_search`; locations are ranked by its
+evidence), the 6D pose from the similarity (paper §4.2) and, when the model
+has a contour model, the refinement against image edges (§5.2's scene-based
+tracking).
 """
 
 from __future__ import annotations
@@ -43,30 +45,19 @@ from viewloc_core.refine import (
     refine_pose,
 )
 from viewloc_core.symmetry import canonical_pose
+from viewloc_core.view_search import ViewCandidate, chance_rates, search_views, view_templates
 
 #: Images larger than this (longest side, px) are searched on a pyramid level.
 MAX_SEARCH_SIDE_PX = 700
 
-#: Refinement settings of the quick 6D check that chooses among alternative
-#: views at one location: the coarse level only, a few iterations.
-QUICK_REFINE = RefineOptions(iterations=(0, 3), shift_search_px=12.0, measure_chance=False)
-
 #: The final refinement; its chance rate is not used here, so not measured.
 FINAL_REFINE = RefineOptions(measure_chance=False)
 
-#: Inlier fraction by which an alternative view's quick check must beat the
-#: 2D-ranked view to replace it.
-ALTERNATIVE_MARGIN = 0.1
-
 #: Locations beyond ``max_detections`` that get the final fit, in case the
-#: quick check ranked a true one just below a false one.
+#: view search ranked a true one just below a false one.
 SPARE_LOCATIONS = 1
 
-#: Training views closer than this to the chosen one are tried as starts of
-#: the final refinement (about one view spacing of level 2).
-NEIGHBOUR_VIEW_DEG = 20.0
-
-#: A quick check that confirms this share of the contour needs no other start
+#: A refinement that confirms this share of the contour needs no other start
 #: (true poses: median 0.90 on the paper set).
 GOOD_FIT_FRACTION = 0.75
 
@@ -185,34 +176,20 @@ def _pose_centred(
 
 @dataclass(frozen=True, slots=True, eq=False)
 class _Located:
-    """The chosen view at one image location, before the final fit."""
+    """The training views that explain one image location best, before the final fit."""
 
     match: Match2D
-    t_view: int
-    sim_level: NDArray[np.float64]
-    quick: RefinementResult | None
+    candidates: list[ViewCandidate]
+
+    @property
+    def evidence(self) -> float:
+        """Log-likelihood ratio of the best view (ranks locations)."""
+        return self.candidates[0].log_likelihood_ratio if self.candidates else -np.inf
 
 
-def _quick_rank(result: RefinementResult | None) -> float:
-    """Ranking key of a quick 6D check: share of the contour that found its edge."""
+def _fit_rank(result: RefinementResult | None) -> float:
+    """Ranking key of a refinement: share of the contour that found its edge."""
     return -1.0 if result is None else float(result.inlier_fraction)
-
-
-_DIRECTIONS_CACHE: weakref.WeakKeyDictionary[ObjectModel, NDArray[np.float64]] = (
-    weakref.WeakKeyDictionary()
-)
-
-
-def _neighbour_views(model: ObjectModel, t_view: int) -> NDArray[np.int64]:
-    """Training views within ``NEIGHBOUR_VIEW_DEG`` of ``t_view`` (itself excluded)."""
-    dirs = _DIRECTIONS_CACHE.get(model)
-    if dirs is None:
-        # Row 2 of R_m2c is the camera's viewing axis in object coordinates.
-        dirs = np.asarray(model.training.R_m2c[:, 2, :], dtype=np.float64)
-        _DIRECTIONS_CACHE[model] = dirs
-    cos = dirs @ dirs[t_view]
-    near = np.flatnonzero(cos > np.cos(np.radians(NEIGHBOUR_VIEW_DEG)))
-    return near[near != t_view]
 
 
 def _final_detection(
@@ -220,45 +197,50 @@ def _final_detection(
     camera: Camera, edges: EdgePyramid | None, contour: ContourModel | None,
     view_radius_px: float,
 ) -> Detection:
-    """2D fit at training scale, 6D pose and, with a contour model, its refinement."""
-    sim_level, cov = _refit_at_model_scale(model, loc.t_view, loc.sim_level, level,
-                                           view_radius_px)
+    """6D pose of the best view at a location and, with a contour model, its refinement."""
+    best = loc.candidates[0]
+    score = best.hit_fraction
+    if contour is None or edges is None:
+        # Without refinement the 2D fit decides the pose: refit at training scale.
+        sim_level, score = _refit_at_model_scale(model, best.view, best.sim, level,
+                                                 view_radius_px)
+    else:
+        sim_level = best.sim
+    t_view = best.view
     similarity = _to_full_resolution(sim_level, factor)
-    pose_centred = _pose_centred(model, loc.t_view, similarity, camera)
+    pose_centred = _pose_centred(model, t_view, similarity, camera)
     refined = False
     pose_std = None
-    score = float(cov)
     if contour is not None and edges is not None:
-        # The training views around the chosen one, under the same
-        # similarity (all training views share one camera geometry), widen
-        # the refinement's capture range where appearance changes fast with
-        # the view (a barbell seen nearly end-on).
-        starts = [loc.quick] if loc.quick is not None else []
-        if _quick_rank(loc.quick) < GOOD_FIT_FRACTION:
-            starts += [
-                refine_pose(edges, camera, _pose_centred(model, t, similarity, camera), contour,
-                            QUICK_REFINE)
-                for t in _neighbour_views(model, loc.t_view)
-            ]
-        best_start = max(starts, key=_quick_rank) if starts else None
-        start = best_start.pose if best_start is not None else pose_centred
-        result = refine_pose(edges, camera, start, contour, FINAL_REFINE)
-        if best_start is not None and _quick_rank(best_start) > _quick_rank(result):
-            result = best_start
-        moved = np.linalg.norm(result.pose.t_m2c - pose_centred.t_m2c)
-        # Accept only a fit that matched most of the contour and did not
-        # wander off (a wrong 2D match cannot be rescued here).
+        result = refine_pose(edges, camera, pose_centred, contour, FINAL_REFINE)
+        if _fit_rank(result) < GOOD_FIT_FRACTION:
+            # The runners-up of the view search, as other starts.
+            for cand in loc.candidates[1:]:
+                sim_c = _to_full_resolution(cand.sim, factor)
+                other = refine_pose(edges, camera, _pose_centred(model, cand.view, sim_c, camera),
+                                    contour, FINAL_REFINE)
+                if _fit_rank(other) > _fit_rank(result):
+                    result, t_view, similarity = other, cand.view, sim_c
+            pose_centred = _pose_centred(model, t_view, similarity, camera)
+        moved = result.pose.t_m2c - pose_centred.t_m2c
+        # The depth from the 2D scale is uncertain by several %, the image
+        # position much less: a refinement that wanders sideways has left
+        # the object (a wrong 2D match cannot be rescued here).
+        z = float(pose_centred.t_m2c[2])
         fits = result.converged or result.mean_residual_px < 1.0
         if (fits and result.inlier_fraction >= 0.6
-                and moved < 0.25 * model.diameter_mm + 0.05 * pose_centred.t_m2c[2]):
+                and np.hypot(moved[0], moved[1]) < 0.25 * model.diameter_mm
+                and abs(moved[2]) < 0.25 * z):
             pose_centred = result.pose
             refined = True
             pose_std = result.pose_std
+            score = float(result.inlier_fraction)
             # The reference point is where the refined pose puts the origin.
             ref_xy = camera.project(pose_centred.t_m2c[None])[0]
             similarity = Similarity2D(float(ref_xy[0]), float(ref_xy[1]),
                                       similarity.angle_deg, similarity.scale)
-        score = float(result.inlier_fraction)
+        else:
+            score = min(score, float(result.inlier_fraction))
     # The model was learned with the bounding-box centre as origin.
     pose = Pose(pose_centred.R_m2c,
                 pose_centred.t_m2c - pose_centred.R_m2c @ model.origin_offset_mm)
@@ -267,11 +249,11 @@ def _final_detection(
         # closest to the camera's, so the answer does not jump between them.
         pose = canonical_pose(pose, model.symmetry_group())
     return Detection(
-        score=score,
+        score=float(score),
         log_probability=float(loc.match.log_probability),
-        model_view=int(model.training.model_view[loc.t_view]),
-        azimuth_deg=float(model.training.azimuth_deg[loc.t_view]),
-        polar_deg=float(model.training.polar_deg[loc.t_view]),
+        model_view=int(model.training.model_view[t_view]),
+        azimuth_deg=float(model.training.azimuth_deg[t_view]),
+        polar_deg=float(model.training.polar_deg[t_view]),
         similarity=similarity,
         pose=pose,
         refined=refined,
@@ -330,31 +312,17 @@ def localize(
     min_score = model.default_min_score if options.min_score is None else options.min_score
     contour = _contour_model(model) if options.refine else None
     edges = prepare_edges(arr) if contour is not None and matches else None
-    # Pass 1: per image location, the view that explains the image best.
-    located: list[_Located] = []
+    # Pass 1: per image location, the training views that explain it best.
+    templates = view_templates(model)
+    chance = chance_rates(feats)
+    located = []
     for match in matches:
-        candidates = [_member_view(model, m, feats) for m in (match, *match.alternatives)]
-        if contour is None or edges is None:
-            located.append(_Located(match, *candidates[0], None))
-            continue
-        # A short 6D refinement of each alternative view tells which one
-        # explains the image edges; the 2D similarity cannot.
-        checked = [
-            (t, sl, refine_pose(
-                edges, camera, _pose_centred(model, t, _to_full_resolution(sl, factor), camera),
-                contour, QUICK_REFINE))
-            for t, sl in candidates
-        ]
-        # The 2D ranking (g and coverage) chose the first; another view
-        # replaces it only when its contour is clearly better confirmed (an
-        # outline and its mirror image can both fit about as well).
-        best = checked[0]
-        for c in checked[1:]:
-            if _quick_rank(c[2]) > _quick_rank(best[2]) + ALTERNATIVE_MARGIN:
-                best = c
-        located.append(_Located(match, *best))
-    if edges is not None:
-        located.sort(key=lambda c: -_quick_rank(c.quick))
+        seeds = np.array([_member_view(model, m, feats)[1] for m in (match, *match.alternatives)])
+        located.append(_Located(match, search_views(feats, templates, seeds, chance)))
+    located = [loc for loc in located if loc.candidates]
+    located.sort(key=lambda loc: -loc.evidence)
+    t4 = time.perf_counter()
+    timing["views"] = (t4 - t3) * 1e3
     # Pass 2: final fit of the best locations only.
     detections: list[Detection] = []
     for loc in located[: options.max_detections + SPARE_LOCATIONS]:
@@ -364,6 +332,6 @@ def localize(
             detections.append(det)
     detections.sort(key=lambda d: -d.score)
     detections = detections[: options.max_detections]
-    timing["pose"] = (time.perf_counter() - t3) * 1e3
+    timing["pose"] = (time.perf_counter() - t4) * 1e3
     timing["total"] = (time.perf_counter() - t0) * 1e3
     return LocalizationResult(detections, timing)
