@@ -118,12 +118,14 @@ class Camera:
             Pixel coordinates (with distortion applied when present).
         """
         pts = np.asarray(pts_cam, dtype=np.float64).reshape(-1, 3)
-        z = pts[:, 2]
-        xn = pts[:, 0] / z
-        yn = pts[:, 1] / z
+        xy = pts[:, :2] / pts[:, 2:3]
         if self.has_distortion:
-            xn, yn = _distort(xn, yn, self.dist)
-        return np.stack([self.fx * xn + self.cx, self.fy * yn + self.cy], axis=1)
+            xd, yd = _distort(xy[:, 0], xy[:, 1], self.dist)
+            xy = np.column_stack([xd, yd])
+        # In place on the fresh array: this runs in every refinement step.
+        xy *= (self.fx, self.fy)
+        xy += (self.cx, self.cy)
+        return xy
 
     def undistort_points(self, uv: NDArray[np.floating]) -> NDArray[np.float64]:
         """Remove lens distortion from pixel positions (identity without it).

@@ -22,6 +22,21 @@ def test_distortion_round_trip():
     np.testing.assert_allclose(rays, pts / np.linalg.norm(pts, axis=1, keepdims=True), atol=1e-6)
 
 
+@pytest.mark.parametrize("dist", [(), (-0.2, 0.05, 0.001, -0.001, 0.01),
+                                  (0.1, -0.02, 0.0, 0.002, 0.0, 0.01, 0.0, 0.001)])
+def test_projection_matches_opencv(dist):
+    cv2 = pytest.importorskip("cv2")
+    cam = Camera(500.0, 510.0, 320.0, 240.0, 640, 480, dist=dist)
+    rng = np.random.default_rng(0)
+    pts = np.column_stack([rng.uniform(-200, 200, (50, 2)), rng.uniform(400, 900, 50)])
+    ref, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), cam.K, np.asarray(dist, float))
+    uv = cam.project(pts)
+    assert uv.shape == (50, 2) and uv.dtype == np.float64
+    np.testing.assert_allclose(uv, ref.reshape(-1, 2), atol=1e-9)
+    # A single point (3,) projects like a row of one.
+    np.testing.assert_allclose(cam.project(pts[0]), uv[:1])
+
+
 def test_scaled_keeps_pixel_centres():
     cam = Camera(500.0, 500.0, 319.5, 239.5, 640, 480)
     half = cam.scaled(0.5)
