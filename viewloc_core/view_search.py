@@ -170,18 +170,22 @@ class ViewCandidate:
         Object vs. clutter evidence of its edge samples (see module docstring).
     hit_fraction : float
         Share of its edge samples confirmed by an image edge.
+    evidence_fraction : float
+        Its log-likelihood ratio as a share of a perfect fit's (see
+        :func:`score_views`).
     """
 
     view: int
     sim: F64
     log_likelihood_ratio: float
     hit_fraction: float
+    evidence_fraction: float
 
 
 def score_views(
     feats: ImageFeatures, templates: ViewTemplates, views: NDArray[np.int64], sims: F64,
     chance: F64, subset: NDArray[np.int64] | None = None,
-) -> tuple[F64, F64]:
+) -> tuple[F64, F64, F64]:
     """Log-likelihood ratio and hit fraction of H (view, similarity) pairs.
 
     Parameters
@@ -203,6 +207,10 @@ def score_views(
     llr : (H,) float64
         Summed over samples, each weighted by the image edge length it stands for.
     hit_fraction : (H,) float64
+    evidence_fraction : (H,) float64
+        ``llr`` as a share of what it would be if every sample in the image
+        found its edge: 1 for a perfect fit, about 0 or below for a fit no
+        better than chance; independent of the object's size in the image.
     """
     if subset is None:
         pts, bins, valid = templates.pts[views], templates.bins[views], templates.valid[views]
@@ -230,7 +238,11 @@ def score_views(
     per_sample = np.where(hit, log_hit[b], np.where(inside, log_miss[b], 0.0))
     weight = templates.length_px[views] * sims[:, 3]
     n_valid = np.maximum(valid.sum(axis=1), 1)
-    return per_sample.sum(axis=1) * weight, hit.sum(axis=1) / n_valid
+    llr = per_sample.sum(axis=1)
+    # The evidence had every sample in the image found its edge.
+    llr_all_found = np.where(inside, log_hit[b], 0.0).sum(axis=1)
+    return (llr * weight, hit.sum(axis=1) / n_valid,
+            llr / np.maximum(llr_all_found, 1e-9))
 
 
 def _distinct_seeds(seeds: F64) -> F64:
@@ -284,7 +296,7 @@ def search_views(
     sims_g[:, 3] *= offs[:, 3]
     sims = np.repeat(sims_g, n_views, axis=0)
     views = np.tile(np.arange(n_views), len(sims_g))
-    llr, _ = score_views(feats, templates, views, sims, chance, templates.coarse[views])
+    llr, _, _ = score_views(feats, templates, views, sims, chance, templates.coarse[views])
     # The best few distinct views go on to the least-squares fit.
     order = np.argsort(-llr)
     chosen: list[int] = []
@@ -301,13 +313,12 @@ def search_views(
     fitted = _extend_many(feats, sims[pick], templates.pts[fit_views],
                           templates.theta[fit_views], templates.valid[fit_views],
                           FIT_RADII_PX, 22.5)
-    llr_fit, frac_fit = score_views(feats, templates, fit_views, fitted, chance)
+    after = score_views(feats, templates, fit_views, fitted, chance)
     # The fit can wander onto clutter; keep whichever of before/after scores higher.
-    llr_before, frac_before = score_views(feats, templates, fit_views, sims[pick], chance)
-    better = llr_fit >= llr_before
+    before = score_views(feats, templates, fit_views, sims[pick], chance)
+    better = after[0] >= before[0]
     final_sims = np.where(better[:, None], fitted, sims[pick])
-    final_llr = np.where(better, llr_fit, llr_before)
-    final_frac = np.where(better, frac_fit, frac_before)
-    best = np.argsort(-final_llr)[:max_candidates]
-    return [ViewCandidate(int(fit_views[i]), final_sims[i], float(final_llr[i]),
-                          float(final_frac[i])) for i in best]
+    llr, frac, evid = (np.where(better, a, b) for a, b in zip(after, before, strict=True))
+    best = np.argsort(-llr)[:max_candidates]
+    return [ViewCandidate(int(fit_views[i]), final_sims[i], float(llr[i]), float(frac[i]),
+                          float(evid[i])) for i in best]

@@ -60,17 +60,19 @@ def test_evidence_is_higher_on_the_object_than_on_clutter(renderer, bracket_mesh
     feats = extract_features(image)
     chance = chance_rates(feats)
     views = np.array([5])
-    on, frac_on = score_views(feats, templates, views, sim_true[None], chance)
+    on, frac_on, evid_on = score_views(feats, templates, views, sim_true[None], chance)
     rng = np.random.default_rng(0)
     elsewhere = np.tile(sim_true, (40, 1))
     elsewhere[:, 0] = rng.uniform(0, CAM.width, 40)
     elsewhere[:, 1] = rng.uniform(0, CAM.height, 40)
     far = np.hypot(elsewhere[:, 0] - sim_true[0], elsewhere[:, 1] - sim_true[1]) > 80
-    off, frac_off = score_views(feats, templates, np.full(int(far.sum()), 5), elsewhere[far],
-                                chance)
+    off, frac_off, evid_off = score_views(feats, templates, np.full(int(far.sum()), 5),
+                                          elsewhere[far],
+                                          chance)
     assert on[0] > 0 > np.median(off)
     assert on[0] > off.max()
     assert frac_on[0] > np.percentile(frac_off, 90)
+    assert evid_on[0] > 0.5 > evid_off.max()
 
 
 def test_chance_rates_follow_the_image_clutter():
