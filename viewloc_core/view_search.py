@@ -46,6 +46,11 @@ TRUE_HIT_RATE = 0.8
 COARSE_ANGLES_DEG = (-10.0, -5.0, 0.0, 5.0, 10.0)
 COARSE_SCALES = (0.93, 1.0, 1.07)
 
+#: Angle offsets (degrees) at which every view is screened, at the seed's
+#: scale, before the best ``SCREENED_VIEWS`` get the full grid.
+SCREEN_ANGLES_DEG = (-5.0, 0.0, 5.0)
+SCREENED_VIEWS = 16
+
 #: Edge samples per view in the coarse grid.
 COARSE_POINTS = 48
 
@@ -260,6 +265,24 @@ def _distinct_seeds(seeds: F64) -> F64:
     return np.array(kept)
 
 
+def _grid_sims(seeds: F64, angles_rad: NDArray[np.float64] | tuple[float, ...],
+               scales: tuple[float, ...]) -> F64:
+    """Every seed turned by every angle offset and scaled by every factor: (K * A * S, 4)."""
+    out = []
+    for seed in seeds:
+        for a in angles_rad:
+            for f in scales:
+                out.append([seed[0], seed[1], seed[2] + a, seed[3] * f])
+    return np.array(out, np.float64)
+
+
+def _best_distinct(views: NDArray[np.int64], llr: F64, count: int) -> NDArray[np.int64]:
+    """Indices of the best-scoring entry of each of the ``count`` best views."""
+    order = np.argsort(-llr)
+    _, first = np.unique(views[order], return_index=True)
+    return np.asarray(order[np.sort(first)[:count]], np.int64)
+
+
 def search_views(
     feats: ImageFeatures, templates: ViewTemplates, seeds: F64, chance: F64,
     max_candidates: int = 3,
@@ -286,29 +309,19 @@ def search_views(
     """
     n_views = len(templates)
     seeds = _distinct_seeds(np.atleast_2d(np.asarray(seeds, np.float64)))
-    angles = np.radians(COARSE_ANGLES_DEG)
-    grid = np.array([[0.0, 0.0, a, s] for a in angles for s in COARSE_SCALES])  # (G, 4)
-    # All (seed, grid offset, view) combinations.
-    base = np.repeat(seeds, len(grid), axis=0)
-    offs = np.tile(grid, (len(seeds), 1))
-    sims_g = base.copy()
-    sims_g[:, 2] += offs[:, 2]
-    sims_g[:, 3] *= offs[:, 3]
-    sims = np.repeat(sims_g, n_views, axis=0)
-    views = np.tile(np.arange(n_views), len(sims_g))
+    # Stage 1: every view at the seeds' scale and a few angles; stage 2: the
+    # views that scored best there on the full angle and scale grid.
+    stage1 = _grid_sims(seeds, np.radians(SCREEN_ANGLES_DEG), (1.0,))
+    views1 = np.tile(np.arange(n_views), len(stage1))
+    sims1 = np.repeat(stage1, n_views, axis=0)
+    llr1, _, _ = score_views(feats, templates, views1, sims1, chance, templates.coarse[views1])
+    best_views = _best_distinct(views1, llr1, SCREENED_VIEWS)
+    stage2 = _grid_sims(seeds, np.radians(COARSE_ANGLES_DEG), COARSE_SCALES)
+    views = np.tile(views1[best_views], len(stage2))
+    sims = np.repeat(stage2, len(best_views), axis=0)
     llr, _, _ = score_views(feats, templates, views, sims, chance, templates.coarse[views])
     # The best few distinct views go on to the least-squares fit.
-    order = np.argsort(-llr)
-    chosen: list[int] = []
-    seen: set[int] = set()
-    for i in order:
-        if int(views[i]) in seen:
-            continue
-        seen.add(int(views[i]))
-        chosen.append(int(i))
-        if len(chosen) == FITTED_CANDIDATES:
-            break
-    pick = np.array(chosen, np.int64)
+    pick = _best_distinct(views, llr, FITTED_CANDIDATES)
     fit_views = views[pick]
     fitted = _extend_many(feats, sims[pick], templates.pts[fit_views],
                           templates.theta[fit_views], templates.valid[fit_views],
