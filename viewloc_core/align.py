@@ -29,6 +29,7 @@ from scipy.spatial import cKDTree
 
 from viewloc_core import similarity as sim2
 from viewloc_core.features import (
+    KIND_ARC,
     KIND_JUNCTION,
     KIND_PARALLEL,
     ImageFeatures,
@@ -39,8 +40,10 @@ from viewloc_core.model import ModelView, ObjectModel
 F64 = NDArray[np.float64]
 
 #: Attribute standard deviations per feature kind (junction: opening angle rad,
-#: log arm ratio; parallel pair: log overlap/separation, unused).
-ATTR_SIGMA = {KIND_JUNCTION: np.array([0.12, 0.7]), KIND_PARALLEL: np.array([0.5, 1e3])}
+#: log arm ratio; parallel pair: log overlap/separation, unused; arc: angular
+#: span rad, unused; spans vary with occlusion and where the chain splits).
+ATTR_SIGMA = {KIND_JUNCTION: np.array([0.12, 0.7]), KIND_PARALLEL: np.array([0.5, 1e3]),
+              KIND_ARC: np.array([0.6, 1e3])}
 
 
 @dataclass(frozen=True, slots=True)
@@ -201,11 +204,15 @@ def _log_background_density(kind: int, attrs: F64) -> F64:
     """log f_bg(a): attribute density of clutter features.
 
     Junction opening angles are about uniform over the accepted range and arm
-    ratios about log-normal; parallel-pair overlap ratios about log-normal.
+    ratios about log-normal; parallel-pair overlap ratios about log-normal;
+    arc spans about uniform between the smallest kept span and a full circle.
     """
     if kind == KIND_JUNCTION:
         span = np.pi - 2 * np.radians(25.0)
         return -np.log(span) - 0.5 * (attrs[:, 1] / 1.2) ** 2 - np.log(1.2 * np.sqrt(2 * np.pi))
+    if kind == KIND_ARC:
+        span = 2 * np.pi - np.radians(80.0)
+        return np.full(len(attrs), -np.log(span))
     return -0.5 * ((attrs[:, 0] - 1.0) / 1.0) ** 2 - np.log(np.sqrt(2 * np.pi))
 
 

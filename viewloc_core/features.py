@@ -6,7 +6,9 @@ From a grey or colour image (8 or 16 bit) this extracts
   and refit alignments and by the pose refinement;
 - **segments**: straight edge segments (LSD, Grompone von Gioi et al. 2010);
 - **junctions**: pairs of segments meeting at a vertex (L-junctions/corners);
-- **parallel pairs**: two overlapping, nearly parallel segments.
+- **parallel pairs**: two overlapping, nearly parallel segments;
+- **arcs**: circular arcs fitted to chains of edge pixels (discs and holes
+  seen end-on give few straight segments but clean circles).
 
 Every grouped feature has a position ``b = (x, y, θ, s)`` (pixels, radians,
 pixels) and similarity-invariant attributes ``a``. No feature depends on
@@ -29,6 +31,7 @@ from scipy.spatial import cKDTree
 from viewloc_core.errors import InvalidImageError
 
 F32 = NDArray[np.float32]
+F64 = NDArray[np.float64]
 
 #: Orientation bins over [0, π) for the spread orientation maps (LINE-2D style).
 ORIENTATION_BINS = 16
@@ -36,6 +39,7 @@ ORIENTATION_BINS = 16
 #: Feature kinds; a model feature only pairs with an image feature of its kind.
 KIND_JUNCTION = 0
 KIND_PARALLEL = 1
+KIND_ARC = 2
 
 
 @dataclass(frozen=True, slots=True)
@@ -59,6 +63,16 @@ class FeatureConfig:
     edge_low_frac, edge_high_frac : float
         Canny hysteresis thresholds as fractions of the 98th percentile of the
         gradient magnitude, so the edge map does not depend on exposure.
+    arc_min_radius_px, arc_max_radius_px : float
+        Radius range of circular arcs, pixels.
+    arc_min_span_deg : float
+        Arcs covering less of their circle are dropped (their centre and
+        radius are poorly determined and a gently bent line would pass).
+        ``align._log_background_density`` assumes this value (80).
+    arc_max_rms_px, arc_max_rms_frac : float
+        Largest RMS distance of an arc's pixels from its circle: the larger
+        of the absolute value and the fraction of the radius (slightly
+        oblique circles are ellipses that a circle fits within a few percent).
     """
 
     min_segment_px: float = 7.0
@@ -68,6 +82,11 @@ class FeatureConfig:
     parallel_max_angle_deg: float = 8.0
     edge_low_frac: float = 0.08
     edge_high_frac: float = 0.2
+    arc_min_radius_px: float = 10.0
+    arc_max_radius_px: float = 400.0
+    arc_min_span_deg: float = 80.0
+    arc_max_rms_px: float = 0.6
+    arc_max_rms_frac: float = 0.006
 
 
 @dataclass(frozen=True, slots=True)
@@ -77,18 +96,19 @@ class GroupedFeatures:
     Attributes
     ----------
     kind : (F,) int8
-        KIND_JUNCTION or KIND_PARALLEL.
+        KIND_JUNCTION, KIND_PARALLEL or KIND_ARC.
     xy : (F, 2) float32
-        Position, pixels.
+        Position, pixels (arc: centre of its circle).
     theta : (F,) float32
-        Orientation, radians in [0, 2π) (junction bisector) or [0, π) (parallel).
+        Orientation, radians in [0, 2π) (junction bisector; arc: direction
+        from the centre to the middle of the arc) or [0, π) (parallel).
     scale : (F,) float32
         Size, pixels (junction: geometric mean of arm lengths; parallel pair:
-        separation of the two lines).
+        separation of the two lines; arc: radius).
     attrs : (F, 2) float32
         Similarity-invariant attributes. Junction: (opening angle in radians,
         log arm-length ratio). Parallel pair: (log overlap/separation,
-        log length ratio).
+        log length ratio). Arc: (angular span in radians, 0).
     """
 
     kind: NDArray[np.int8]
@@ -258,7 +278,6 @@ def extract_features(
     lo_v, hi_v = np.percentile(smooth[::2, ::2], [1.0, 99.0])
     grey8 = np.clip((smooth - lo_v) * (255.0 / max(hi_v - lo_v, 1e-6)), 0, 255).astype(np.uint8)
     segments = _segments(grey8, config, mask)
-    grouped = _group(segments, config)
     bits = orientation_bits_map(edge_xy, edge_theta, (h, w), spread_px)
     if len(edge_xy):
         # Labels of DIST_LABEL_PIXEL number the zero pixels in raster order,
@@ -270,6 +289,8 @@ def extract_features(
     else:
         dist = np.full((h, w), np.inf, np.float32)
         nearest = np.full((h, w), -1, np.int32)
+    arcs = _arcs(edges, edge_xy, edge_theta, nearest, dist, config)
+    grouped = _concat_parts([_group(segments, config), arcs])
     return ImageFeatures(edge_xy, edge_theta, segments, grouped, bits, nearest, dist, (h, w))
 
 
@@ -384,11 +405,14 @@ def _segments(grey8: NDArray[np.uint8], config: FeatureConfig,
     return seg
 
 
-def _group(seg: F32, config: FeatureConfig) -> GroupedFeatures:
+_Parts = tuple[NDArray[np.int8], F32, F32, F32, F32]
+
+
+def _group(seg: F32, config: FeatureConfig) -> _Parts:
     """Junctions and parallel pairs from segments."""
     junctions = _junctions(seg, config)
     parallels = _parallel_pairs(seg, config)
-    return GroupedFeatures(
+    return (
         np.concatenate([junctions[0], parallels[0]]),
         np.concatenate([junctions[1], parallels[1]]),
         np.concatenate([junctions[2], parallels[2]]),
@@ -397,7 +421,14 @@ def _group(seg: F32, config: FeatureConfig) -> GroupedFeatures:
     )
 
 
-_Parts = tuple[NDArray[np.int8], F32, F32, F32, F32]
+def _concat_parts(parts: list[_Parts]) -> GroupedFeatures:
+    return GroupedFeatures(
+        np.concatenate([p[0] for p in parts]),
+        np.concatenate([p[1] for p in parts]),
+        np.concatenate([p[2] for p in parts]),
+        np.concatenate([p[3] for p in parts]),
+        np.concatenate([p[4] for p in parts]),
+    )
 
 
 def _no_parts() -> _Parts:
@@ -527,3 +558,346 @@ def _parallel_pairs(seg: F32, config: FeatureConfig) -> _Parts:
         sep.astype(np.float32),
         attrs.astype(np.float32),
     )
+
+
+#: Half window, in contour steps, of the tangent estimate along an edge chain.
+_ARC_STEP = 3
+#: Turning (radians) between the tangents ``_ARC_STEP`` steps before and after a
+#: point that marks it as a corner, a branch or the end of an open chain; a
+#: circle turns that much only below ``7 / 0.85 ≈ 8`` px radius.
+_ARC_CORNER_TURN = 0.85
+#: Pieces a circle does not fit are cut into chunks of this many contour
+#: points and refitted: an arc that runs smoothly into a straight line has no
+#: corner to split at, but its chunks fit, and the refit on the edges
+#: extends them to the whole arc.
+_ARC_CHUNK = 24
+#: Most candidate circles refitted on the edges per image (largest first).
+_ARC_MAX_CANDIDATES = 64
+#: Arcs covering at least this angle are closed circles: the middle of the arc
+#: is undefined, and the orientation is taken from the surrounding edges.
+_ARC_CLOSED = np.radians(330.0)
+
+
+def _arcs(edges: NDArray[np.uint8], edge_xy: F32, edge_theta: F32,
+          nearest: NDArray[np.int32], edge_distance: F32, config: FeatureConfig) -> _Parts:
+    """Circular arcs on the edge map.
+
+    The edge map, dilated by one pixel to bridge the gaps Canny leaves on
+    steep curves, is traced into closed pixel chains (``cv2.findContours``
+    runs along both sides of an open curve and turns back at its ends). The
+    chains are cut at corners (large turning of the tangent) and circles
+    fitted to the pieces by linear least squares. Each candidate circle is
+    then refitted on the original edge pixels near it whose tangent agrees,
+    which gathers the whole circle (both sides of a chain, pieces split by
+    occlusion or branches), and kept when those pixels fit it well and cover
+    a long enough run of it; duplicates of one circle are dropped.
+
+    Position, orientation and size are covariant under a 2D similarity:
+    ``xy`` the centre, ``theta`` the direction from the centre to the middle
+    of the arc, ``scale`` the radius; the attribute (the angular span) is
+    invariant. Everything comes from edge geometry, so neither brightness nor
+    the sign of the contrast enters.
+
+    Parameters
+    ----------
+    edges : (H, W) uint8
+        Canny edge map (non-zero on edges).
+    edge_xy : (E, 2) float32
+        Its edge pixels.
+    edge_theta : (E,) float32
+        Their tangent orientation modulo π, radians.
+    nearest, edge_distance : (H, W) int32, float32
+        Index of the nearest edge pixel and its distance, per pixel.
+    config : FeatureConfig
+
+    Returns
+    -------
+    kind, xy, theta, scale, attrs as in :class:`GroupedFeatures`.
+    """
+    traced = cv2.dilate(edges, np.ones((3, 3), np.uint8))
+    contours, _ = cv2.findContours(traced, cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)
+    min_points = 4 * _ARC_STEP + 8
+    chains = [c.reshape(-1, 2) for c in contours if len(c) >= min_points]
+    if not chains:
+        return _no_parts()
+    lengths = np.array([len(c) for c in chains], np.int64)
+    starts = np.cumsum(lengths) - lengths
+    pts = np.concatenate(chains).astype(np.float64)
+    start = np.repeat(starts, lengths)
+    length = np.repeat(lengths, lengths)
+    pos = np.arange(len(pts)) - start
+
+    def along(offset: int) -> NDArray[np.int64]:
+        return np.asarray(start + (pos + offset) % length, np.int64)
+
+    d = pts[along(_ARC_STEP)] - pts[along(-_ARC_STEP)]
+    phi = np.arctan2(d[:, 1], d[:, 0])
+    turn = np.abs(_wrap_pi(phi[along(_ARC_STEP)] - phi[along(-_ARC_STEP)]))
+    corner = turn > _ARC_CORNER_TURN
+    # Start each chain at its first corner so that no piece wraps around.
+    first = np.minimum.reduceat(np.where(corner, pos, length), starts)
+    first = np.where(first < lengths, first, 0)
+    order = start + (pos + np.repeat(first, lengths)) % length
+    pts, corner = pts[order], corner[order]
+    boundary = corner | (pos == 0)
+    keep = ~corner
+    pts, piece = pts[keep], _drop_small(np.cumsum(boundary)[keep] - 1, 10)
+    pts, piece = pts[piece >= 0], piece[piece >= 0]
+    if len(pts) == 0:
+        return _no_parts()
+
+    fit = _fit_circles(pts, piece)
+    good = _circle_ok(fit, config, np.radians(30.0), 1.5)
+    # Chunks of the pieces no circle fits.
+    rank = np.arange(len(piece)) - np.searchsorted(piece, piece)
+    bad = ~good[piece]
+    chunk = _drop_small(np.unique(piece[bad] * 100000 + rank[bad] // _ARC_CHUNK,
+                                  return_inverse=True)[1], _ARC_CHUNK // 2)
+    cpts = pts[bad][chunk >= 0]
+    chunk = chunk[chunk >= 0]
+    # Chunks are short: ask for more curvature, or a pixel jog in a straight
+    # line fits a wide circle.
+    cfit = _fit_circles(cpts, chunk) if len(chunk) else np.zeros((0, 5))
+    cgood = _circle_ok(cfit, config, np.radians(45.0), 1.5)
+    cand = np.concatenate([fit[good], cfit[cgood]])
+    if len(cand) == 0:
+        return _no_parts()
+
+    # Every candidate is refitted on the edge pixels along its circle; pieces
+    # of one circle converge on it and the duplicates are dropped at the end
+    # (grouping the candidates first lets a loose fit lead a group astray).
+    start_circles = cand[np.argsort(-cand[:, 4], kind="stable")[:_ARC_MAX_CANDIDATES], :3]
+    return _arcs_on_edges(start_circles, edge_xy, edge_theta, nearest, edge_distance, config)
+
+
+def _arcs_on_edges(circles: F64, edge_xy: F32, edge_theta: F32, nearest: NDArray[np.int32],
+                   edge_distance: F32, config: FeatureConfig) -> _Parts:
+    """Refit circles ``(cx, cy, r)`` on the edge pixels along them; the good ones as arcs.
+
+    The edge pixels of a circle are found by walking round it in 1 px steps
+    and looking up the nearest edge pixel of each step (cost proportional to
+    the perimeter, not to the number of edges); those close to the circle and
+    tangent to it are kept and the circle refitted, four times with a
+    narrowing band.
+    """
+    exy = edge_xy.astype(np.float64)
+    eth = edge_theta.astype(np.float64)
+    h, w = nearest.shape
+    current = circles
+    label = np.zeros(0, np.int64)
+    use = np.zeros(0, np.int64)
+    for band_px, band_frac in ((4.0, 0.08), (3.0, 0.04), (2.0, 0.02), (1.5, 0.01)):
+        cx, cy, r = current[:, 0], current[:, 1], current[:, 2]
+        band = band_px + band_frac * r
+        valid = np.isfinite(r) & (r <= config.arc_max_radius_px)
+        steps = np.where(valid, np.ceil(2 * np.pi * np.where(valid, r, 0.0)), 0).astype(np.int64)
+        label = np.repeat(np.arange(len(current)), steps)
+        if len(label) == 0:
+            return _no_parts()
+        k = np.arange(len(label)) - np.repeat(np.cumsum(steps) - steps, steps)
+        ang = 2 * np.pi * k / steps[label]
+        u = np.rint(cx[label] + r[label] * np.cos(ang)).astype(np.int64)
+        v = np.rint(cy[label] + r[label] * np.sin(ang)).astype(np.int64)
+        inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        label, u, v = label[inside], u[inside], v[inside]
+        close = edge_distance[v, u] <= band[label] + 1.0
+        label = label[close]
+        pair = label * len(exy) + nearest[v[close], u[close]]
+        # Neighbouring steps often find the same pixel.
+        pair = pair[np.r_[True, pair[1:] != pair[:-1]]]
+        label, use = pair // len(exy), pair % len(exy)
+        dx = exy[use, 0] - cx[label]
+        dy = exy[use, 1] - cy[label]
+        dist = np.hypot(dx, dy)
+        # On the circle and tangent to it (edge tangents are modulo π).
+        dth = np.abs(np.mod(eth[use] - np.arctan2(dy, dx), np.pi) - np.pi / 2)
+        near = (np.abs(dist - r[label]) <= band[label]) & (dth < np.radians(12.0))
+        label, use = label[near], use[near]
+        # Circles with too few pixels stay in place as empty sets.
+        present = np.bincount(label, minlength=len(current)) >= 8
+        keep = present[label]
+        label, use = label[keep], use[keep]
+        if len(label) == 0:
+            return _no_parts()
+        refit = np.zeros((len(current), 5))
+        refit[:, 2] = np.inf
+        refit[present] = _fit_circles(exy[use], np.unique(label, return_inverse=True)[1])
+        current = refit
+    # Two starting circles may converge on one circle: keep the best covered.
+    return _dedupe_arcs(_arc_parts(exy[use], label, current, exy, config))
+
+
+def _dedupe_arcs(parts: _Parts) -> _Parts:
+    """One arc per circle: the longest among those of about the same centre and radius."""
+    kind, xy, theta, scale, attrs = parts
+    if len(kind) < 2:
+        return parts
+    order = np.argsort(-attrs[:, 0] * scale, kind="stable")
+    kept: list[int] = []
+    for i in order:
+        same = [
+            j for j in kept
+            if np.hypot(*(xy[i] - xy[j])) <= 0.1 * scale[j] + 1.5
+            and abs(scale[i] - scale[j]) <= 0.05 * scale[j] + 1.5
+        ]
+        if not same:
+            kept.append(int(i))
+    sel = np.sort(np.array(kept, np.int64))
+    return kind[sel], xy[sel], theta[sel], scale[sel], attrs[sel]
+
+
+def _arc_parts(pts: F64, label: NDArray[np.int64], circles: F64, edge_xy: F64,
+               config: FeatureConfig) -> _Parts:
+    """Span and orientation of each labelled circle; the acceptable ones as features.
+
+    ``pts`` are the pixels on each circle (``label`` its row of ``circles``,
+    ``cx, cy, r, rms, n``), ``edge_xy`` all edge pixels (for closed circles).
+    """
+    cx, cy, r, rms = circles[:, 0], circles[:, 1], circles[:, 2], circles[:, 3]
+    fits = (r >= config.arc_min_radius_px) & (r <= config.arc_max_radius_px)
+    fits &= rms <= np.maximum(config.arc_max_rms_px, config.arc_max_rms_frac * r)
+    use = fits[label]
+    pts, label = pts[use], label[use]
+    if len(pts) == 0:
+        return _no_parts()
+    # Angular coverage in bins about 2 px of arc long. The arc is the longest
+    # run of occupied bins interrupted by short gaps only (Canny drops
+    # pixels): a circle tangent to the two arms of a corner is covered near
+    # both tangent points but not between them, and is no arc.
+    n_bins = np.clip(np.rint(np.pi * np.where(fits, r, 0.0)), 12, 360).astype(np.int64)
+    nb = n_bins[label]
+    psi = np.mod(np.arctan2(pts[:, 1] - cy[label], pts[:, 0] - cx[label]), 2 * np.pi)
+    bins = np.minimum((psi / (2 * np.pi) * nb).astype(np.int64), nb - 1)
+    key = np.unique(label * 512 + bins)
+    lab, occ = key // 512, key % 512
+    bounds = np.searchsorted(lab, np.arange(len(circles) + 1))
+    circle_l, theta_l, span_l = [], [], []
+    min_span = np.radians(config.arc_min_span_deg)
+    for c in np.flatnonzero(np.diff(bounds) > 0):
+        o = occ[bounds[c]: bounds[c + 1]]
+        n = int(n_bins[c])
+        gap = np.diff(np.append(o, o[0] + n)) - 1
+        big = np.flatnonzero(gap > max(2, round(0.06 * n)))
+        if len(big) == 0:
+            # Closed (or nearly): the middle of the arc is undefined.
+            if n - gap.max() < _ARC_CLOSED / (2 * np.pi) * n:
+                big = np.array([int(np.argmax(gap))])
+            else:
+                circle_l.append(c)
+                theta_l.append(_closed_circle_orientation(edge_xy, cx[c], cy[c], r[c]))
+                span_l.append(2 * np.pi)
+                continue
+        # Runs start after a big gap and end at the next big gap.
+        first = (big + 1) % len(o)
+        last = np.roll(big, -1)
+        run_bins = np.mod(o[last] - o[first], n) + 1
+        run_count = np.mod(last - first, len(o)) + 1
+        k = int(np.argmax(run_bins))
+        span = 2 * np.pi * run_bins[k] / n
+        if span < min_span or run_count[k] < 0.6 * run_bins[k]:
+            continue
+        circle_l.append(c)
+        theta_l.append((o[first[k]] + (run_bins[k] - 1) / 2 + 0.5) * 2 * np.pi / n)
+        span_l.append(min(span, 2 * np.pi))
+    circle = np.array(circle_l, np.int64)
+    theta = np.array(theta_l, np.float64)
+    span = np.array(span_l, np.float64)
+    return (
+        np.full(len(circle), KIND_ARC, np.int8),
+        np.stack([cx[circle], cy[circle]], axis=1).astype(np.float32),
+        np.mod(theta, 2 * np.pi).astype(np.float32),
+        r[circle].astype(np.float32),
+        np.stack([span, np.zeros(len(span))], axis=1).astype(np.float32),
+    )
+
+
+def _closed_circle_orientation(edge_xy: F64, cx: float, cy: float, r: float) -> float:
+    """Orientation of a closed circle: towards the centroid of the edges around it.
+
+    A full circle has no middle; the other edges within 1.6 radii (a hub, the
+    crescent of a second disc behind it) are as covariant as the circle and
+    give it a direction when they are not centred on it. Symmetric
+    surroundings leave it undetermined: then straight up (−y), arbitrarily.
+    """
+    d = np.hypot(edge_xy[:, 0] - cx, edge_xy[:, 1] - cy)
+    near = (d < 1.6 * r) & (np.abs(d - r) > 2.5)
+    if near.any():
+        v = edge_xy[near].mean(axis=0) - (cx, cy)
+        if np.hypot(v[0], v[1]) > 0.05 * r:
+            return float(np.arctan2(v[1], v[0]))
+    return 1.5 * np.pi
+
+
+def _fit_circles(pts: F64, label: NDArray[np.int64]) -> F64:
+    """Algebraic (Kåsa) circle fit to every labelled point set at once.
+
+    Parameters
+    ----------
+    pts : (N, 2) float64
+        Points, pixels.
+    label : (N,) int64
+        Set of each point, 0..L-1 (every label present).
+
+    Returns
+    -------
+    (L, 5) float64
+        ``cx, cy, r, rms, n`` per set: centre and radius (pixels), RMS
+        geometric distance of the points from the circle, point count. Sets
+        on a line get an infinite radius.
+    """
+    n_sets = int(label.max()) + 1
+    n = np.bincount(label, minlength=n_sets).astype(np.float64)
+    mx = np.bincount(label, pts[:, 0], n_sets) / n
+    my = np.bincount(label, pts[:, 1], n_sets) / n
+    u = pts[:, 0] - mx[label]
+    v = pts[:, 1] - my[label]
+    z = u * u + v * v
+    # Centred coordinates make the normal equations block diagonal:
+    # u² + v² = A u + B v + C with C = mean(z) and a 2x2 system for (A, B).
+    suu = np.bincount(label, u * u, n_sets)
+    suv = np.bincount(label, u * v, n_sets)
+    svv = np.bincount(label, v * v, n_sets)
+    suz = np.bincount(label, u * z, n_sets)
+    svz = np.bincount(label, v * z, n_sets)
+    c = np.bincount(label, z, n_sets) / n
+    det = suu * svv - suv * suv
+    flat = det <= 1e-9 * (suu + svv) ** 2
+    det = np.where(flat, 1.0, det)
+    a = (svv * suz - suv * svz) / det
+    b = (suu * svz - suv * suz) / det
+    cu, cv = a / 2, b / 2
+    r = np.sqrt(np.maximum(c + cu * cu + cv * cv, 0.0))
+    resid = np.hypot(u - cu[label], v - cv[label]) - r[label]
+    rms = np.sqrt(np.bincount(label, resid * resid, n_sets) / n)
+    r = np.where(flat, np.inf, r)
+    return np.stack([mx + cu, my + cv, r, rms, n], axis=1)
+
+
+def _circle_ok(fit: F64, config: FeatureConfig, min_span: float,
+               rms_slack: float) -> NDArray[np.bool_]:
+    """Fits within the radius range and ``rms_slack`` times the RMS bound whose
+    chain covers ``min_span`` radians."""
+    r, rms, n = fit[:, 2], fit[:, 3], fit[:, 4]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        # Contour steps are 1 or √2 px: about 1.1 px of arc per point.
+        span = 1.1 * n / r
+        return np.asarray(
+            (r >= config.arc_min_radius_px) & (r <= config.arc_max_radius_px)
+            & (rms <= rms_slack * np.maximum(config.arc_max_rms_px, config.arc_max_rms_frac * r))
+            & (span >= min_span)
+        )
+
+
+def _drop_small(label: NDArray[np.int64], min_count: int) -> NDArray[np.int64]:
+    """Relabel 0..L'-1 the sets with at least ``min_count`` points; others -1."""
+    if len(label) == 0:
+        return label
+    counts = np.bincount(label)
+    big = counts >= min_count
+    new = np.where(big, np.cumsum(big) - 1, -1)
+    return np.asarray(new[label], np.int64)
+
+
+def _wrap_pi(angle: F64) -> F64:
+    """Angle wrapped to [-π, π)."""
+    return np.asarray(np.mod(angle + np.pi, 2 * np.pi) - np.pi, np.float64)
