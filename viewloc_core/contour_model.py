@@ -120,9 +120,8 @@ class ContourModel:
         object off the optical axis is seen from the side.
         """
         d = -pose.R_m2c.T @ pose.t_m2c
-        n = float(np.linalg.norm(d))
-        if n < 1e-9:
-            d = -pose.R_m2c.T @ np.array([0.0, 0.0, 1.0])
+        if float(d @ d) < 1e-18:
+            d = -pose.R_m2c[2]
         return int(np.argmax(self.directions @ d))
 
     def view_points(self, view: int) -> tuple[NDArray[np.float32], NDArray[np.float32]]:

@@ -97,7 +97,9 @@ class Pose:
             raise InvalidInputError(
                 f"pose needs R (3, 3) and t (3,), got {R.shape} and {t.shape}", "pose"
             )
-        if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
+        # ndarray.all, not np.all: poses are built in every refinement step
+        # and np.all's dispatch costs more than the test.
+        if not (np.isfinite(R).all() and np.isfinite(t).all()):
             raise InvalidInputError("pose must be finite", "pose")
         object.__setattr__(self, "R_m2c", R)
         object.__setattr__(self, "t_m2c", t)
