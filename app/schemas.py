@@ -50,6 +50,31 @@ class CameraIn(_In):
     height: int | None = Field(default=None, gt=0, description="Optional; must match the image.")
 
 
+Transform16 = Annotated[list[FiniteFloat], Field(min_length=16, max_length=16)]
+Vector3 = Annotated[list[FiniteFloat], Field(min_length=3, max_length=3)]
+
+
+class SymmetryAxisIn(_In):
+    """A continuous rotational symmetry (BOP ``symmetries_continuous`` entry)."""
+
+    axis: Vector3 = Field(description="Direction of the axis, object frame; non-zero.")
+    offset: Vector3 = Field(default_factory=lambda: [0.0, 0.0, 0.0],
+                            description="A point on the axis, in the spec's units.")
+
+
+class SymmetriesIn(_In):
+    """A declared symmetry group in BOP ``models_info`` form (object frame, spec's units)."""
+
+    symmetries_discrete: list[Transform16] = Field(
+        default_factory=list, max_length=240,
+        description="Row-major 4x4 rigid transforms (last row 0 0 0 1, rotation orthonormal "
+        "within 1e-3, det +1, translation in the spec's units); the group they generate "
+        "is used, the identity always included.",
+    )
+    symmetries_continuous: list[SymmetryAxisIn] = Field(
+        default_factory=list, max_length=1, description="At most one continuous axis.")
+
+
 class MeshSpec(_In):
     """The ``spec`` form field of ``POST /v1/objects``."""
 
@@ -57,6 +82,11 @@ class MeshSpec(_In):
     units: Literal["mm", "cm", "m", "in"] = "mm"
     learning: dict[str, object] | None = Field(
         default=None, description="Optional tuning of the learning (LearningConfig fields)."
+    )
+    symmetries: SymmetriesIn | None = Field(
+        default=None,
+        description="The part's symmetries, replacing the detected ones (e.g. a near-symmetry "
+        "the detector accepts that QA must tell apart: declare {} for none).",
     )
 
 
@@ -94,6 +124,21 @@ class MultiLocalizeOptionsIn(LocalizeOptionsIn):
 
 
 # -- outputs ---------------------------------------------------------------
+class SymmetryAxisOut(BaseModel):
+    """A continuous rotational symmetry, object frame, mm."""
+
+    axis: list[float] = Field(min_length=3, max_length=3, description="Unit direction.")
+    offset: list[float] = Field(min_length=3, max_length=3, description="A point on it, mm.")
+
+
+class SymmetriesOut(BaseModel):
+    """The model's symmetry group in BOP ``models_info`` form (identity left out), mm."""
+
+    symmetries_discrete: list[list[float]] = Field(
+        description="Row-major 4x4 transforms, translation in mm.")
+    symmetries_continuous: list[SymmetryAxisOut]
+
+
 class ObjectOut(BaseModel):
     """An object (API.md ``Object``)."""
 
@@ -107,6 +152,10 @@ class ObjectOut(BaseModel):
     created_at: str = Field(description="RFC 3339 UTC.")
     job_id: str
     error: str | None = Field(default=None, description="Why the object is failed, if it is.")
+    symmetries: SymmetriesOut | None = Field(
+        default=None, description="Symmetry group of the learned model (declared in the spec "
+        "or detected on the mesh); null until the object is ready.",
+    )
 
 
 class JobOut(BaseModel):

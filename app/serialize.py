@@ -10,6 +10,7 @@ from typing import Any
 
 from model_store import JobRecord, ObjectRecord
 from viewloc_core.detection import Detection
+from viewloc_core.symmetry import Symmetries
 
 
 def _f(value: float) -> float:
@@ -18,8 +19,20 @@ def _f(value: float) -> float:
     return v if math.isfinite(v) else 0.0
 
 
-def object_dict(rec: ObjectRecord) -> dict[str, Any]:
-    """API ``Object``."""
+def symmetries_dict(sym: Symmetries) -> dict[str, Any]:
+    """API ``Object.symmetries``: BOP ``models_info`` form, identity left out, mm."""
+    cont = []
+    if sym.continuous_axis is not None and sym.continuous_offset is not None:
+        cont.append({"axis": [_f(v) for v in sym.continuous_axis],
+                     "offset": [_f(v) for v in sym.continuous_offset]})
+    return {
+        "symmetries_discrete": [[_f(v) for v in T.reshape(16)] for T in sym.discrete[1:]],
+        "symmetries_continuous": cont,
+    }
+
+
+def object_dict(rec: ObjectRecord, symmetries: dict[str, Any] | None = None) -> dict[str, Any]:
+    """API ``Object``; ``symmetries`` (from :func:`symmetries_dict`) once it is ready."""
     return {
         "object_id": rec.object_id,
         "name": rec.name,
@@ -31,6 +44,7 @@ def object_dict(rec: ObjectRecord) -> dict[str, Any]:
         "created_at": rec.created_at,
         "job_id": rec.job_id,
         "error": rec.error,
+        "symmetries": symmetries,
     }
 
 

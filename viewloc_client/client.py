@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -33,12 +33,15 @@ class ObjectInfo:
     created_at: str
     job_id: str
     error: str | None = None
+    #: Symmetry group of the ready model, BOP ``models_info`` form in mm
+    #: (``symmetries_discrete``, ``symmetries_continuous``); None while learning.
+    symmetries: dict[str, Any] | None = field(default=None, hash=False)
 
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> ObjectInfo:
         return cls(d["object_id"], d["name"], d["state"], d["source"], float(d["diameter_mm"]),
                    int(d["training_views"]), int(d["model_views"]), d["created_at"],
-                   d["job_id"], d.get("error"))
+                   d["job_id"], d.get("error"), d.get("symmetries"))
 
 
 @dataclass(frozen=True, slots=True)
@@ -142,11 +145,18 @@ class ViewlocClient:
     # -- objects -----------------------------------------------------------
     def learn_mesh(self, mesh: bytes | str | Path, *, filename: str = "mesh.stl",
                    name: str = "", units: str = "mm",
-                   learning: dict[str, Any] | None = None) -> tuple[ObjectInfo, JobInfo]:
-        """Upload a mesh (bytes with ``filename`` for its format, or a path)."""
+                   learning: dict[str, Any] | None = None,
+                   symmetries: dict[str, Any] | None = None) -> tuple[ObjectInfo, JobInfo]:
+        """Upload a mesh (bytes with ``filename`` for its format, or a path).
+
+        ``symmetries`` (BOP ``models_info`` form, lengths in ``units``)
+        replaces the group the service would detect; ``{}`` means none.
+        """
         spec: dict[str, Any] = {"name": name, "units": units}
         if learning:
             spec["learning"] = learning
+        if symmetries is not None:
+            spec["symmetries"] = symmetries
         r = self._request("POST", "/v1/objects", files={"mesh": _file(mesh, filename)},
                           data={"spec": json.dumps(spec)})
         body = r.json()

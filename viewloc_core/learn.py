@@ -46,6 +46,7 @@ from viewloc_core.features import (
     orientation_bin,
 )
 from viewloc_core.model import ModelView, ObjectModel, TrainingViews
+from viewloc_core.symmetry import Symmetries
 from viewloc_core.view_sphere import direction_from_angles, view_directions, view_rotation
 
 ProgressFn = Callable[[str, float], None]
@@ -515,6 +516,7 @@ def learn_from_mesh(
     progress: ProgressFn | None = None,
     rng: np.random.Generator | int | None = None,
     should_stop: StopFn | None = None,
+    symmetries: Symmetries | None = None,
 ) -> ObjectModel:
     """Learn a view-based model of a mesh (paper §4.1).
 
@@ -529,6 +531,11 @@ def learn_from_mesh(
         Seed for the lighting; None uses ``config.seed``.
     should_stop : callable, optional
         Polled between views; True raises ``Cancelled``.
+    symmetries : Symmetries, optional
+        The part's symmetry group in the mesh's frame (mm), e.g. from
+        :func:`viewloc_core.symmetry.declared_symmetries`; stored as given
+        instead of the one :func:`viewloc_core.symmetry.detect_symmetries`
+        finds (which runs only when this is None).
 
     Returns
     -------
@@ -590,12 +597,28 @@ def learn_from_mesh(
         progress("finishing", 1.0)
     model = _finish(clusterer, rotations, samples, angles, "mesh", diameter, d0, f, size,
                     centre, config, mesh)
-    sym = detect_symmetries(mesh, rng=0)
+    sym = detect_symmetries(mesh, rng=0) if symmetries is None else symmetries
+    return with_symmetries(replace(model, contour=contour.to_arrays()), sym)
+
+
+def with_symmetries(model: ObjectModel, sym: Symmetries) -> ObjectModel:
+    """``model`` with its symmetry group replaced by ``sym`` (object frame, mm).
+
+    Parameters
+    ----------
+    model : ObjectModel
+    sym : Symmetries
+        Discrete transforms (identity first) and the continuous axis, if any.
+
+    Returns
+    -------
+    ObjectModel
+        A copy; ``symmetries`` (K, 4, 4) and ``symmetry_axis`` (6,) or None.
+    """
     axis = None
     if sym.continuous_axis is not None and sym.continuous_offset is not None:
         axis = np.concatenate([sym.continuous_axis, sym.continuous_offset])
-    return replace(model, contour=contour.to_arrays(), symmetries=sym.discrete,
-                   symmetry_axis=axis)
+    return replace(model, symmetries=np.array(sym.discrete, np.float64), symmetry_axis=axis)
 
 
 def learn_from_images(

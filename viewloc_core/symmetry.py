@@ -436,3 +436,181 @@ def min_rotation_error_deg(
     gt = Pose(np.asarray(R_gt, dtype=np.float64), np.zeros(3))
     return rotation_angle_deg(np.asarray(R_est, dtype=np.float64),
                               canonical_pose(gt, sym, R_ref=R_est).R_m2c)
+
+
+#: Largest declared group accepted (a 60-tooth gear with a flip has 120 elements).
+_MAX_DECLARED_GROUP = 240
+#: Tolerances of a declared rotation, as BOP's annotations are written to a few digits.
+_DECLARED_ORTHO_TOL = 1e-3
+_DECLARED_AXIS_TOL_DEG = 0.5
+
+
+def _declared_numbers(value: Any, size: int, field: str) -> Array:
+    """``value`` as ``size`` finite float64 numbers, else InvalidInputError naming ``field``."""
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InvalidInputError(f"{field} must be {size} numbers", field) from exc
+    if arr.size != size or arr.ndim > 2:
+        raise InvalidInputError(f"{field} must be {size} numbers, got {arr.size}", field)
+    if not np.all(np.isfinite(arr)):
+        raise InvalidInputError(f"{field} must be finite numbers", field)
+    return arr.reshape(size)
+
+
+def _declared_transform(flat: Any, to_mm: float, field: str) -> Array:
+    T = _declared_numbers(flat, 16, field).reshape(4, 4)
+    if np.abs(T[3] - [0.0, 0.0, 0.0, 1.0]).max() > 1e-6:
+        raise InvalidInputError(f"{field}: the last row of the 4x4 transform must be 0 0 0 1",
+                                field)
+    R = T[:3, :3]
+    if np.abs(R @ R.T - np.eye(3)).max() > _DECLARED_ORTHO_TOL:
+        raise InvalidInputError(f"{field}: the 3x3 part is not orthonormal (within "
+                                f"{_DECLARED_ORTHO_TOL})", field)
+    if abs(float(np.linalg.det(R)) - 1.0) > _DECLARED_ORTHO_TOL:
+        raise InvalidInputError(f"{field}: the 3x3 part has determinant "
+                                f"{float(np.linalg.det(R)):.3f}, not +1 (a reflection is no "
+                                "rigid motion)", field)
+    out = np.eye(4)
+    out[:3, :3] = orthonormalize(R)
+    out[:3, 3] = T[:3, 3] * to_mm
+    return out
+
+
+def _index_of(T: Array, group: Array, tol_mm: float) -> int:
+    """Index of an element of ``group`` (K, 4, 4) equal to ``T`` within 0.5° / ``tol_mm``; -1."""
+    if len(group) == 0:
+        return -1
+    # Angle of R_a^T R_b from its trace, vectorised over the group.
+    cos = (np.einsum("kij,ij->k", group[:, :3, :3], T[:3, :3]) - 1.0) / 2.0
+    same = (cos > math.cos(math.radians(0.5))) & (
+        np.linalg.norm(group[:, :3, 3] - T[:3, 3], axis=1) < tol_mm)
+    hits = np.flatnonzero(same)
+    return int(hits[0]) if len(hits) else -1
+
+
+def _close_declared(generators: list[Array], tol_mm: float) -> Array | None:
+    """The finite group the generators generate (identity first); None when it exceeds
+    :data:`_MAX_DECLARED_GROUP` elements (not a finite group, e.g. an irrational angle)."""
+    group = np.eye(4)[None]
+    frontier = [np.eye(4)]
+    while frontier:
+        new: list[Array] = []
+        for g in frontier:
+            for h in generators:
+                prod = h @ g
+                prod[:3, :3] = orthonormalize(prod[:3, :3])
+                if _index_of(prod, group, tol_mm) < 0:
+                    group = np.concatenate([group, prod[None]])
+                    new.append(prod)
+                    if len(group) > _MAX_DECLARED_GROUP:
+                        return None
+        frontier = new
+    return group
+
+
+def declared_symmetries(
+    info: Mapping[str, Any], *, to_mm: float = 1.0, diameter_mm: float | None = None
+) -> Symmetries:
+    """A symmetry group declared by a user in BOP ``models_info`` form, checked strictly.
+
+    Unlike :func:`symmetries_from_bop` (which reads trusted annotation files),
+    every problem is reported with the offending entry named, the group is
+    completed and normalised:
+
+    * without a continuous axis, the declared transforms are closed into a
+      group (a declared 90° turn brings 180° and 270°), duplicates dropped;
+    * with one, every discrete transform must map the axis (as a line) onto
+      itself; turns about the axis are implied by it and dropped, and of the
+      flips (axis reversed) one is kept, as they differ only by such a turn.
+
+    Parameters
+    ----------
+    info : mapping
+        ``symmetries_discrete``: list of 16 numbers each (row-major 4x4,
+        last row 0 0 0 1, rotation part orthonormal within 1e-3 with
+        determinant +1, translation in the declaration's units);
+        ``symmetries_continuous``: at most one ``{"axis": [3], "offset": [3]}``
+        (non-zero axis; ``offset`` a point on it, default the origin).
+        Other keys (BOP's ``diameter``, ``min_x`` ...) are ignored.
+    to_mm : float
+        Millimetres per unit of the declaration (e.g. 10 for cm).
+    diameter_mm : float or None
+        Object diameter, sets the translation tolerance (1e-3 of it); without
+        it the tolerance is 1e-3 of the largest translation or offset (>= 1 µm).
+
+    Returns
+    -------
+    Symmetries
+        Identity first; translations and offset in mm.
+
+    Raises
+    ------
+    InvalidInputError
+        ``field`` names the entry, e.g. ``"symmetries_discrete[1]"``,
+        ``"symmetries_continuous[0].axis"``.
+    """
+    if not isinstance(info, Mapping):
+        raise InvalidInputError("symmetries must be an object", "symmetries")
+    if not (math.isfinite(to_mm) and to_mm > 0):
+        raise InvalidInputError("to_mm must be a positive number", "to_mm")
+    flats = info.get("symmetries_discrete") or []
+    conts = info.get("symmetries_continuous") or []
+    if not isinstance(flats, Sequence) or isinstance(flats, str):
+        raise InvalidInputError("symmetries_discrete must be a list", "symmetries_discrete")
+    if not isinstance(conts, Sequence) or isinstance(conts, str):
+        raise InvalidInputError("symmetries_continuous must be a list", "symmetries_continuous")
+    if len(flats) > _MAX_DECLARED_GROUP:
+        raise InvalidInputError(f"at most {_MAX_DECLARED_GROUP} discrete symmetries",
+                                "symmetries_discrete")
+    transforms = [_declared_transform(f, to_mm, f"symmetries_discrete[{k}]")
+                  for k, f in enumerate(flats)]
+    if len(conts) > 1:
+        raise InvalidInputError("at most one continuous symmetry axis (a rigid part other than "
+                                "a sphere has no two)", "symmetries_continuous")
+    axis: Array | None = None
+    offset: Array | None = None
+    if conts:
+        entry = conts[0]
+        if not isinstance(entry, Mapping) or "axis" not in entry:
+            raise InvalidInputError("symmetries_continuous[0] needs an axis [3]",
+                                    "symmetries_continuous[0].axis")
+        axis = _declared_numbers(entry["axis"], 3, "symmetries_continuous[0].axis")
+        norm = float(np.linalg.norm(axis))
+        if norm < 1e-9:
+            raise InvalidInputError("symmetries_continuous[0].axis must not be zero",
+                                    "symmetries_continuous[0].axis")
+        axis = axis / norm
+        offset = to_mm * _declared_numbers(entry.get("offset", [0.0, 0.0, 0.0]), 3,
+                                           "symmetries_continuous[0].offset")
+    scale = diameter_mm if diameter_mm is not None and diameter_mm > 0 else max(
+        [1e-3, *(float(np.linalg.norm(T[:3, 3])) for T in transforms),
+         0.0 if offset is None else float(np.linalg.norm(offset))])
+    tol_mm = 1e-3 * scale
+    if axis is None or offset is None:
+        group = _close_declared([T for T in transforms if _index_of(T, np.eye(4)[None],
+                                                                     tol_mm) < 0], tol_mm)
+        if group is None:
+            raise InvalidInputError(
+                f"the discrete symmetries generate more than {_MAX_DECLARED_GROUP} transforms "
+                "(an angle that is no whole fraction of 360°?)", "symmetries_discrete")
+        return Symmetries(group)
+    flip: Array | None = None
+    for k, T in enumerate(transforms):
+        field = f"symmetries_discrete[{k}]"
+        turned = T[:3, :3] @ axis
+        cos = float(turned @ axis)
+        if abs(cos) < math.cos(math.radians(_DECLARED_AXIS_TOL_DEG)):
+            raise InvalidInputError(f"{field} moves the continuous symmetry axis off itself",
+                                    field)
+        moved = T[:3, :3] @ offset + T[:3, 3] - offset
+        if float(np.linalg.norm(moved - (moved @ axis) * axis)) > max(tol_mm, 1e-6):
+            raise InvalidInputError(f"{field} moves the continuous symmetry axis off its line",
+                                    field)
+        if cos > 0 and float(np.linalg.norm(moved)) > max(tol_mm, 1e-6):
+            raise InvalidInputError(f"{field} shifts along the continuous symmetry axis "
+                                    "(a screw motion is no symmetry of a finite part)", field)
+        if cos < 0 and flip is None:
+            flip = T
+    discrete = np.eye(4)[None] if flip is None else np.stack([np.eye(4), flip])
+    return Symmetries(discrete, axis, offset)

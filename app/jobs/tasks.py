@@ -34,15 +34,21 @@ def learn_mesh(
 ) -> Any:
     """Learn an object model from its uploaded mesh (paper §4.1)."""
     from viewloc_core.learn import LearningConfig, learn_from_mesh
-    from viewloc_core.mesh import load_mesh
+    from viewloc_core.mesh import load_mesh, mesh_diameter_mm
+    from viewloc_core.symmetry import declared_symmetries
 
     data, record = store.read_upload(job.object_id)
     meta = record.upload_meta
     progress("loading mesh", 0.0)
     mesh = load_mesh(data, str(meta["file_type"]), str(meta["units"]))
     config = LearningConfig.from_dict(dict(meta.get("learning") or {}))
+    # Checked and converted to mm by the upload route; None means "detect".
+    declared = meta.get("symmetries")
+    symmetries = None if declared is None else declared_symmetries(
+        declared, diameter_mm=float(mesh_diameter_mm(mesh)))
     # rng=None: the seed is ``learning.seed`` of the upload's spec (default 0).
-    return learn_from_mesh(mesh, config, progress=progress, rng=None, should_stop=should_stop)
+    return learn_from_mesh(mesh, config, progress=progress, rng=None, should_stop=should_stop,
+                           symmetries=symmetries)
 
 
 def learn_images(

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import threading
+from collections import OrderedDict
 from pathlib import PurePath
 from typing import Annotated, Any
 
@@ -13,11 +15,20 @@ from app.imaging import decode_image
 from app.openapi_doc import errors
 from app.problems import ProblemError
 from app.routers.common import check_learning_spec, parse_json_field, read_limited
-from app.schemas import ImagesSpec, MeshSpec, ObjectCreated, ObjectList, ObjectOut
-from app.serialize import job_dict, object_dict
+from app.schemas import (
+    ImagesSpec,
+    MeshSpec,
+    ObjectCreated,
+    ObjectList,
+    ObjectOut,
+    SymmetriesIn,
+)
+from app.serialize import job_dict, object_dict, symmetries_dict
+from model_store import ModelStore, ObjectRecord
+from model_store.errors import CorruptModelError, ObjectNotFoundError, ObjectNotReadyError
 from model_store.files import encode_arrays
 from viewloc_core.camera import Camera
-from viewloc_core.errors import InvalidCameraError
+from viewloc_core.errors import InvalidCameraError, InvalidInputError
 
 router = APIRouter(prefix="/v1/objects", tags=["objects"])
 
@@ -54,6 +65,57 @@ def mesh_file_type(filename: str | None, data: bytes) -> str:
     )
 
 
+def declared_symmetries_meta(
+    declared: SymmetriesIn, units: str, diameter_mm: float
+) -> dict[str, Any]:
+    """The declared group checked and completed, in BOP form and mm, as the job reads it.
+
+    422 naming the entry (``spec.symmetries.symmetries_discrete[1]``) when
+    it is no rigid motion, moves the continuous axis, or the transforms
+    generate no finite group.
+    """
+    from viewloc_core.mesh import UNIT_TO_MM
+    from viewloc_core.symmetry import declared_symmetries
+
+    try:
+        sym = declared_symmetries(declared.model_dump(), to_mm=UNIT_TO_MM[units],
+                                  diameter_mm=diameter_mm)
+    except InvalidInputError as exc:
+        raise ProblemError(422, f"the declared symmetries are not valid: {exc.message}",
+                           "validation",
+                           [(f"spec.symmetries.{exc.field or ''}".rstrip("."), exc.message)],
+                           ) from exc
+    return symmetries_dict(sym)
+
+
+#: BOP form of each ready model's symmetries by (object_id, model checksum): a
+#: listing then reads each model once per process, not at every request.
+_SYMMETRIES: OrderedDict[tuple[str, str], dict[str, Any]] = OrderedDict()
+_SYMMETRIES_LOCK = threading.Lock()
+_SYMMETRIES_MAX = 4096
+
+
+def _object_out(store: ModelStore, rec: ObjectRecord) -> dict[str, Any]:
+    """API ``Object`` with the model's symmetry group once it is ready."""
+    if rec.state != "ready" or rec.model_sha256 is None:
+        return object_dict(rec)
+    key = (rec.object_id, rec.model_sha256)
+    with _SYMMETRIES_LOCK:
+        cached = _SYMMETRIES.get(key)
+    if cached is None:
+        try:
+            model = store.load_model(rec.object_id)
+        except (CorruptModelError, ObjectNotReadyError):
+            # A corrupt model has just been marked failed; show the object as it now is.
+            return object_dict(store.get_object(rec.object_id))
+        cached = symmetries_dict(model.symmetry_group())
+        with _SYMMETRIES_LOCK:
+            _SYMMETRIES[key] = cached
+            while len(_SYMMETRIES) > _SYMMETRIES_MAX:
+                _SYMMETRIES.popitem(last=False)
+    return object_dict(rec, cached)
+
+
 def _created(store_obj: Any, store_job: Any, response: Response) -> dict[str, Any]:
     response.headers["Location"] = f"/v1/jobs/{store_job.job_id}"
     return {"object": object_dict(store_obj), "job": job_dict(store_job)}
@@ -75,7 +137,9 @@ def create_object(
     response: Response,
     spec: Annotated[
         str | None,
-        Form(description='JSON: {"name": str, "units": "mm"|"cm"|"m"|"in", "learning": {...}}'),
+        Form(description='JSON: {"name": str, "units": "mm"|"cm"|"m"|"in", "learning": {...}, '
+             '"symmetries": {"symmetries_discrete": [[16 numbers], ...], '
+             '"symmetries_continuous": [{"axis": [3], "offset": [3]}]}} (all optional)'),
     ] = None,
 ) -> dict[str, Any]:
     """Store the mesh and queue a learning job. Answers 202 with ``Location: /v1/jobs/{id}``."""
@@ -92,18 +156,23 @@ def create_object(
     name = parsed.name or PurePath(mesh.filename or "object").stem[:200]
     from viewloc_core.mesh import mesh_diameter_mm
 
+    diameter_mm = float(mesh_diameter_mm(loaded))
+    meta: dict[str, Any] = {
+        "file_type": file_type,
+        "units": parsed.units,
+        "learning": parsed.learning or {},
+    }
+    if parsed.symmetries is not None:
+        meta["symmetries"] = declared_symmetries_meta(parsed.symmetries, parsed.units,
+                                                      diameter_mm)
     obj, job = store.create_object(
         name=name,
         source="mesh",
         kind="learn_mesh",
         upload=data,
         upload_suffix="bin",
-        upload_meta={
-            "file_type": file_type,
-            "units": parsed.units,
-            "learning": parsed.learning or {},
-        },
-        diameter_mm=float(mesh_diameter_mm(loaded)),
+        upload_meta=meta,
+        diameter_mm=diameter_mm,
     )
     runner.submit(job)
     return _created(obj, job, response)
@@ -230,14 +299,20 @@ def create_object_from_images(
 @router.get("", response_model=ObjectList, responses=errors(503), summary="List objects")
 def list_objects(store: StoreDep) -> dict[str, Any]:
     """All objects, oldest first."""
-    return {"objects": [object_dict(o) for o in store.list_objects()]}
+    out = []
+    for rec in store.list_objects():
+        try:
+            out.append(_object_out(store, rec))
+        except ObjectNotFoundError:  # deleted while listing
+            continue
+    return {"objects": out}
 
 
 @router.get("/{object_id}", response_model=ObjectOut, responses=errors(404, 503),
             summary="Get an object")
 def get_object(object_id: ObjectId, store: StoreDep) -> dict[str, Any]:
     """One object's metadata and state."""
-    return object_dict(store.get_object(object_id))
+    return _object_out(store, store.get_object(object_id))
 
 
 @router.delete("/{object_id}", status_code=204, responses=errors(404, 503),

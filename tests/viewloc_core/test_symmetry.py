@@ -15,6 +15,7 @@ from viewloc_core.pose import Pose, rotation_angle_deg
 from viewloc_core.symmetry import (
     Symmetries,
     canonical_pose,
+    declared_symmetries,
     detect_symmetries,
     min_rotation_error_deg,
     symmetries_from_bop,
@@ -239,3 +240,111 @@ def test_canonical_pose_is_the_same_from_every_equivalent():
         other = Pose(pose.R_m2c @ spun @ np.diag([1.0, -1.0, -1.0]), pose.t_m2c)
         again = canonical_pose(other, sym)
         np.testing.assert_allclose(again.R_m2c, pose.R_m2c, atol=1e-6)
+
+
+# -- symmetries declared by the user (spec.symmetries of POST /v1/objects) -----------------
+_FLIP_X = [1, 0, 0, 0, 0, -1, 0, 0, 0, 0, -1, 0, 0, 0, 0, 1]
+_TURN_Z_90 = [0, -1, 0, 0, 1, 0, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]
+
+
+def _flat(R: np.ndarray, t: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> list[float]:
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = t
+    return [float(v) for v in T.reshape(16)]
+
+
+@pytest.mark.parametrize(("info", "field"), [
+    ({"symmetries_discrete": [_FLIP_X, [1, 2, 3]]}, "symmetries_discrete[1]"),
+    ({"symmetries_discrete": [[*_FLIP_X[:15], float("nan")]]}, "symmetries_discrete[0]"),
+    ({"symmetries_discrete": [[2, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]]},
+     "symmetries_discrete[0]"),
+    # A mirror image is orthonormal but no rigid motion.
+    ({"symmetries_discrete": [_FLIP_X, [-1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]]},
+     "symmetries_discrete[1]"),
+    ({"symmetries_discrete": [[*_FLIP_X[:12], 0, 0, 1, 1]]}, "symmetries_discrete[0]"),
+    ({"symmetries_continuous": [{"axis": [0, 0, 1]}, {"axis": [1, 0, 0]}]},
+     "symmetries_continuous"),
+    ({"symmetries_continuous": [{"axis": [0, 0, 0], "offset": [0, 0, 0]}]},
+     "symmetries_continuous[0].axis"),
+    ({"symmetries_continuous": [{"axis": [0, 0, 1], "offset": [0, math.inf, 0]}]},
+     "symmetries_continuous[0].offset"),
+    ({"symmetries_continuous": [{"offset": [0, 0, 0]}]}, "symmetries_continuous[0].axis"),
+    # About x by 1 rad never closes into a finite group.
+    ({"symmetries_discrete": [_flat(Rotation.from_rotvec([1.0, 0, 0]).as_matrix())]},
+     "symmetries_discrete"),
+    # With a continuous axis z, a 90° turn about x moves the axis.
+    ({"symmetries_discrete": [[1, 0, 0, 0, 0, 0, -1, 0, 0, 1, 0, 0, 0, 0, 0, 1]],
+      "symmetries_continuous": [{"axis": [0, 0, 1], "offset": [0, 0, 0]}]},
+     "symmetries_discrete[0]"),
+])
+def test_declared_symmetries_name_the_bad_entry(info, field):
+    with pytest.raises(InvalidInputError) as err:
+        declared_symmetries(info)
+    assert err.value.field == field
+
+
+def test_declared_discrete_group_is_closed_and_scaled_to_mm():
+    # 90° about the z-parallel line through (1 cm, 0, 0), declared in cm.
+    turn = np.array(_TURN_Z_90, float).reshape(4, 4)[:3, :3]
+    # The identity, declared or not, is not repeated.
+    sym = declared_symmetries({"symmetries_discrete": [_flat(turn, (1.0, -1.0, 0.0)),
+                                                       _flat(np.eye(3))]}, to_mm=10.0)
+    assert len(sym.discrete) == 4 and not sym.is_continuous
+    np.testing.assert_allclose(sym.discrete[0], np.eye(4))
+    for S in sym.discrete:
+        # Every element keeps the axis point (10 mm, 0, 0) in place.
+        np.testing.assert_allclose(S[:3, :3] @ [10.0, 0, 0] + S[:3, 3], [10.0, 0, 0],
+                                   atol=1e-9)
+    angles = sorted(round(rotation_angle_deg(np.eye(3), S[:3, :3])) for S in sym.discrete)
+    assert angles == [0, 90, 90, 180]
+    assert declared_symmetries({}).discrete.shape == (1, 4, 4)
+
+
+def test_declared_continuous_axis_keeps_one_flip():
+    # A turn about the axis is implied by it; two flips differ only by a turn.
+    turn = Rotation.from_rotvec([0, 0, 0.3]).as_matrix()
+    sym = declared_symmetries({
+        "symmetries_discrete": [_flat(turn), _FLIP_X, _flat(turn @ np.diag([1.0, -1.0, -1.0]))],
+        "symmetries_continuous": [{"axis": [0, 0, 2], "offset": [0, 0, 0.5]}],
+    }, to_mm=10.0)
+    assert sym.is_continuous and len(sym.discrete) == 2
+    np.testing.assert_allclose(sym.continuous_axis, [0, 0, 1])
+    np.testing.assert_allclose(sym.continuous_offset, [0, 0, 5.0])
+    np.testing.assert_allclose(sym.discrete[1], np.array(_FLIP_X, float).reshape(4, 4))
+
+
+def test_learning_stores_the_declared_group_and_localize_canonicalises_with_it(tmp_path):
+    from model_store.files import load_model_dir, save_model_dir
+    from viewloc_core.learn import LearningConfig, learn_from_mesh
+
+    # A box is detected with three 2-fold axes; this station declares it
+    # asymmetric (a mark QA cares about) in one model, and in the other adds
+    # a continuous axis the detector would never accept.
+    mesh = trimesh.creation.box((60.0, 30.0, 15.0))
+    config = LearningConfig(max_level=0, min_level=0, object_px=64)
+    plain = learn_from_mesh(mesh, config, symmetries=declared_symmetries({}))
+    assert plain.symmetries.shape == (1, 4, 4) and plain.symmetry_axis is None
+    declared = declared_symmetries({"symmetries_discrete": [_FLIP_X],
+                                    "symmetries_continuous": [{"axis": [1, 0, 0],
+                                                               "offset": [0, 0, 0]}]})
+    model = learn_from_mesh(mesh, config, symmetries=declared)
+    save_model_dir(tmp_path / "m", model)
+    back = load_model_dir(tmp_path / "m")
+    np.testing.assert_allclose(back.symmetries, declared.discrete)
+    assert back.symmetry_axis is not None
+    np.testing.assert_allclose(back.symmetry_axis, [1, 0, 0, 0, 0, 0])
+    group = back.symmetry_group()
+    R = Rotation.from_euler("xyz", [30, -20, 50], degrees=True).as_matrix()
+    pose = Pose(R, np.array([5.0, -3.0, 400.0]))
+    spun = Rotation.from_rotvec([1.234, 0, 0]).as_matrix() @ np.diag([1.0, -1.0, -1.0])
+    a = canonical_pose(pose, group)
+    b = canonical_pose(Pose(R @ spun, pose.t_m2c), group)
+    assert rotation_angle_deg(a.R_m2c, b.R_m2c) < 1e-6
+    # The asymmetric declaration keeps the poses apart (the detector's group would not).
+    flipped = Pose(R @ np.diag([1.0, -1.0, -1.0]), pose.t_m2c)
+    none = plain.symmetry_group()
+    assert rotation_angle_deg(canonical_pose(flipped, none).R_m2c,
+                              canonical_pose(pose, none).R_m2c) > 170
+    assert rotation_angle_deg(canonical_pose(flipped, detect_symmetries(mesh)).R_m2c,
+                              canonical_pose(pose, detect_symmetries(mesh)).R_m2c) < 1e-6
