@@ -107,6 +107,10 @@ class ImagesSpec(_In):
     object_diameter_mm: FiniteFloat = Field(gt=0)
     views: list[ViewIn] = Field(min_length=1)
     learning: dict[str, object] | None = None
+    symmetries: SymmetriesIn | None = Field(
+        default=None, description="The part's symmetries (lengths in mm), in the frame the "
+        "views' angles define; without it the model has none (there is no mesh to detect on).",
+    )
 
 
 class LocalizeOptionsIn(_In):

@@ -58,7 +58,13 @@ def learn_images(
     should_stop: Callable[[], bool],
 ) -> Any:
     """Learn an object model from real images with known viewing angles (paper §4.1)."""
-    from viewloc_core.learn import LearningConfig, TrainingView, learn_from_images
+    from viewloc_core.learn import (
+        LearningConfig,
+        TrainingView,
+        learn_from_images,
+        with_symmetries,
+    )
+    from viewloc_core.symmetry import declared_symmetries
 
     data, record = store.read_upload(job.object_id)
     meta = record.upload_meta
@@ -92,7 +98,12 @@ def learn_images(
             masks = [undistort(m, distorted, nearest=True)[0] for m in masks]
         camera = Camera(distorted.fx, distorted.fy, distorted.cx, distorted.cy,
                         distorted.width, distorted.height)
-    return learn_from_images(
+    model = learn_from_images(
         images, masks, camera, views, float(meta["diameter_mm"]),
         config, progress=progress, rng=None, should_stop=should_stop,
     )
+    declared = meta.get("symmetries")
+    if declared is None:
+        return model
+    return with_symmetries(model, declared_symmetries(
+        declared, diameter_mm=float(meta["diameter_mm"])))

@@ -193,7 +193,8 @@ def create_object_from_images(
     spec: Annotated[
         str,
         Form(description='JSON: {"name", "camera": Camera, "object_diameter_mm", '
-             '"views": [{"azimuth_deg", "polar_deg", "distance_mm", "inplane_deg"}, ...]}'),
+             '"views": [{"azimuth_deg", "polar_deg", "distance_mm", "inplane_deg"}, ...], '
+             '"symmetries" (optional, as for a mesh, mm)}'),
     ],
     store: StoreDep,
     runner: RunnerDep,
@@ -266,6 +267,8 @@ def create_object_from_images(
     ):
         raise ProblemError(422, "camera size does not match the images", "validation",
                            [("spec.camera", f"images are {size[0]}x{size[1]}")])
+    symmetries_meta = None if parsed.symmetries is None else declared_symmetries_meta(
+        parsed.symmetries, "mm", parsed.object_diameter_mm)
     camera_meta = {
         "fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy,
         "dist": list(cam.dist or []), "width": size[0], "height": size[1],
@@ -275,20 +278,23 @@ def create_object_from_images(
     except InvalidCameraError as exc:
         raise ProblemError(422, exc.message, "validation",
                            [(f"spec.camera.{exc.field or ''}".rstrip("."), exc.message)]) from exc
+    meta: dict[str, Any] = {
+        "count": len(images),
+        "has_masks": bool(masks),
+        "camera": camera_meta,
+        "views": [v.model_dump() for v in parsed.views],
+        "diameter_mm": parsed.object_diameter_mm,
+        "learning": parsed.learning or {},
+    }
+    if symmetries_meta is not None:
+        meta["symmetries"] = symmetries_meta
     obj, job = store.create_object(
         name=parsed.name or "object",
         source="images",
         kind="learn_images",
         upload=encode_arrays(arrays),
         upload_suffix="npz",
-        upload_meta={
-            "count": len(images),
-            "has_masks": bool(masks),
-            "camera": camera_meta,
-            "views": [v.model_dump() for v in parsed.views],
-            "diameter_mm": parsed.object_diameter_mm,
-            "learning": parsed.learning or {},
-        },
+        upload_meta=meta,
         diameter_mm=parsed.object_diameter_mm,
         training_views=len(images),
     )

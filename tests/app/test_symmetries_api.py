@@ -8,6 +8,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import cv2
 import httpx
 import numpy as np
 import trimesh
@@ -171,3 +172,41 @@ def test_bad_declarations_are_422_naming_the_entry_and_store_nothing(
     assert meta["symmetries"] == {"symmetries_discrete": [[float(v) for v in FLIP_X[:7]] + [5.0]
                                                           + [float(v) for v in FLIP_X[8:]]],
                                   "symmetries_continuous": []}
+
+
+def _photo() -> bytes:
+    """A bright plate with a hole on a dark ground, 160 x 120 PNG."""
+    img = np.full((120, 160), 30, np.uint8)
+    cv2.rectangle(img, (50, 35), (110, 85), 220, -1)
+    cv2.circle(img, (95, 50), 8, 30, -1)
+    ok, buf = cv2.imencode(".png", img)
+    assert ok
+    return bytes(buf.tobytes())
+
+
+def test_from_images_takes_declared_symmetries(
+    make_server: Callable[..., LiveServer], tmp_path: Path
+) -> None:
+    # No mesh, so nothing is detected: a declaration is the only way to say it.
+    srv = make_server()
+    views = [{"azimuth_deg": 30.0 * i, "polar_deg": 60.0, "distance_mm": 400.0}
+             for i in range(4)]
+    camera = {"fx": 300.0, "fy": 300.0, "cx": 79.5, "cy": 59.5}
+    images = [("images", (f"v{i}.png", _photo(), "image/png")) for i in range(4)]
+
+    def post(symmetries: Any) -> httpx.Response:
+        spec = {"name": "plate", "camera": camera, "object_diameter_mm": 80.0, "views": views,
+                "learning": {"max_level": 0, "min_level": 0}, "symmetries": symmetries}
+        return c.post("/v1/objects/from-images", files=images, data={"spec": json.dumps(spec)})
+
+    with httpx.Client(base_url=srv.url, timeout=30) as c:
+        assert_problem(post({"symmetries_continuous": [{"axis": [0, 0, 0]}]}), 422,
+                       "spec.symmetries.symmetries_continuous[0].axis")
+        assert_problem(post({"symmetries_discrete": [MIRROR_X]}), 422,
+                       "spec.symmetries.symmetries_discrete[0]")
+        assert c.get("/v1/objects").json()["objects"] == []
+        obj = _ready(c, {"plate": post({"symmetries_discrete": [TURN_Z_90]})})["plate"]
+    assert obj["source"] == "images"
+    assert len(obj["symmetries"]["symmetries_discrete"]) == 3
+    model = ModelStore(tmp_path / "var").load_model(obj["object_id"])
+    assert model.symmetries.shape == (4, 4, 4)
