@@ -666,7 +666,11 @@ def _arcs(edges: NDArray[np.uint8], edge_xy: F32, edge_theta: F32,
     # Every candidate is refitted on the edge pixels along its circle; pieces
     # of one circle converge on it and the duplicates are dropped at the end
     # (grouping the candidates first lets a loose fit lead a group astray).
-    start_circles = cand[np.argsort(-cand[:, 4], kind="stable")[:_ARC_MAX_CANDIDATES], :3]
+    # Only near-copies (the two sides of one chain, 2 px apart on the
+    # dilated map) are dropped here.
+    cand = _prune_circles(cand[np.argsort(-cand[:, 4], kind="stable")], config, 2.5)
+    cand = cand[np.isfinite(cand[:, 2])]
+    start_circles = cand[:_ARC_MAX_CANDIDATES, :3]
     return _arcs_on_edges(start_circles, edge_xy, edge_theta, nearest, edge_distance, config)
 
 
@@ -677,7 +681,7 @@ def _arcs_on_edges(circles: F64, edge_xy: F32, edge_theta: F32, nearest: NDArray
     The edge pixels of a circle are found by walking round it in 1 px steps
     and looking up the nearest edge pixel of each step (cost proportional to
     the perimeter, not to the number of edges); those close to the circle and
-    tangent to it are kept and the circle refitted, four times with a
+    tangent to it are kept and the circle refitted, three times with a
     narrowing band.
     """
     exy = edge_xy.astype(np.float64)
@@ -686,7 +690,7 @@ def _arcs_on_edges(circles: F64, edge_xy: F32, edge_theta: F32, nearest: NDArray
     current = circles
     label = np.zeros(0, np.int64)
     use = np.zeros(0, np.int64)
-    for band_px, band_frac in ((4.0, 0.08), (3.0, 0.04), (2.0, 0.02), (1.5, 0.01)):
+    for band_px, band_frac in ((4.0, 0.08), (2.5, 0.03), (1.5, 0.01)):
         cx, cy, r = current[:, 0], current[:, 1], current[:, 2]
         band = band_px + band_frac * r
         valid = np.isfinite(r) & (r <= config.arc_max_radius_px)
@@ -722,9 +726,30 @@ def _arcs_on_edges(circles: F64, edge_xy: F32, edge_theta: F32, nearest: NDArray
         refit = np.zeros((len(current), 5))
         refit[:, 2] = np.inf
         refit[present] = _fit_circles(exy[use], np.unique(label, return_inverse=True)[1])
-        current = refit
+        current = _prune_circles(refit, config)
     # Two starting circles may converge on one circle: keep the best covered.
     return _dedupe_arcs(_arc_parts(exy[use], label, current, exy, config))
+
+
+def _prune_circles(fit: F64, config: FeatureConfig, tol_px: float = 1.5) -> F64:
+    """Between refits: drop (radius ∞) circles with too few pixels for the
+    shortest arc and all but the best supported of circles that converged
+    together (pieces of one circle usually do), to save the next passes."""
+    out = fit.copy()
+    cx, cy, r, n = fit[:, 0], fit[:, 1], fit[:, 2], fit[:, 4]
+    with np.errstate(invalid="ignore"):
+        alive = n >= 0.3 * np.radians(config.arc_min_span_deg) * r
+    out[~alive, 2] = np.inf
+    idx = np.flatnonzero(alive)
+    idx = idx[np.argsort(-n[idx], kind="stable")]
+    same = (np.hypot(cx[idx, None] - cx[None, idx], cy[idx, None] - cy[None, idx]) <= tol_px) & (
+        np.abs(r[idx, None] - r[None, idx]) <= tol_px)
+    dropped = np.zeros(len(idx), bool)
+    for i in range(len(idx)):
+        if not dropped[i]:
+            dropped[i + 1:] |= same[i, i + 1:]
+    out[idx[dropped], 2] = np.inf
+    return out
 
 
 def _dedupe_arcs(parts: _Parts) -> _Parts:
