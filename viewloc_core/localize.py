@@ -58,6 +58,9 @@ MAX_SEARCH_SIDE_PX = 400
 #: The final refinement; its chance rate is not used here, so not measured.
 FINAL_REFINE = RefineOptions(measure_chance=False)
 
+#: Short fit (coarse level, 3 iterations) that compares extra starts.
+QUICK_REFINE = RefineOptions(iterations=(0, 3), measure_chance=False)
+
 #: Locations beyond ``max_detections`` that get the final fit, in case the
 #: view search ranked a true one just below a false one.
 SPARE_LOCATIONS = 1
@@ -230,13 +233,19 @@ def _final_detection(
             starts = [(t_view, Similarity2D(similarity.x, similarity.y, similarity.angle_deg,
                                             similarity.scale * f)) for f in DEPTH_STARTS]
             starts += [(c.view, _to_full_resolution(c.sim, factor)) for c in loc.candidates[1:]]
+            # Each start gets a short coarse fit; the best one the full fit.
+            best_start: tuple[float, int, Similarity2D, Pose] | None = None
             for t_c, sim_c in starts:
-                other = refine_pose(edges, camera, _pose_centred(model, t_c, sim_c, camera),
-                                    contour, FINAL_REFINE)
-                if _fit_rank(other) > _fit_rank(result):
-                    result, t_view, similarity = other, t_c, sim_c
-                if _fit_rank(result) >= GOOD_FIT_FRACTION:
+                quick = refine_pose(edges, camera, _pose_centred(model, t_c, sim_c, camera),
+                                    contour, QUICK_REFINE)
+                if best_start is None or _fit_rank(quick) > best_start[0]:
+                    best_start = (_fit_rank(quick), t_c, sim_c, quick.pose)
+                if _fit_rank(quick) >= GOOD_FIT_FRACTION:
                     break
+            if best_start is not None:
+                other = refine_pose(edges, camera, best_start[3], contour, FINAL_REFINE)
+                if _fit_rank(other) > _fit_rank(result):
+                    result, t_view, similarity = other, best_start[1], best_start[2]
             pose_centred = _pose_centred(model, t_view, similarity, camera)
         moved = result.pose.t_m2c - pose_centred.t_m2c
         # The depth from the 2D scale is uncertain by several %, the image
@@ -342,6 +351,11 @@ def localize(
     # Pass 2: final fit of the best locations only.
     detections: list[Detection] = []
     for loc in located[: options.max_detections + SPARE_LOCATIONS]:
+        good = [d for d in detections if d.refined and d.score >= GOOD_FIT_FRACTION]
+        if len(good) >= options.max_detections:
+            # The spare location is only there in case a false one was
+            # ranked first; confirmed fits need no rival.
+            break
         det = _final_detection(model, loc, level, factor, camera, edges, contour,
                                index.view_radius_px)
         if det.score >= min_score:
