@@ -441,8 +441,9 @@ def _vote_hypotheses(views: NDArray[np.int64], sims: F64, vote: F64,
     gy = np.floor(sims[:, 1] / cell).astype(np.int64) + 2
     gw, gh = int(np.ceil(w / cell)) + 4, int(np.ceil(h / cell)) + 4
     inside = (gx >= 0) & (gx < gw) & (gy >= 0) & (gy < gh)
-    raw = np.zeros((gh, gw), np.float32)
-    np.add.at(raw, (gy[inside], gx[inside]), vote[inside].astype(np.float32))
+    # bincount on flat cell indices: the same sums as np.add.at, far faster.
+    raw = np.bincount(gy[inside] * gw + gx[inside], weights=vote[inside],
+                      minlength=gh * gw).reshape(gh, gw).astype(np.float32)
     acc = np.asarray(cv2.GaussianBlur(raw, (0, 0), 1.0), dtype=np.float32)
     peaks = (acc >= cv2.dilate(acc, np.ones((5, 5), np.uint8))) & (acc > 0)
     py, px = np.nonzero(peaks)

@@ -29,6 +29,7 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from viewloc_core.errors import InvalidImageError
+from viewloc_core.gradient import image_gradient
 
 F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]
@@ -295,26 +296,15 @@ def extract_features(
 
 
 def _gradient(image: NDArray[np.generic], smooth_grey: F32) -> tuple[F32, F32]:
-    """Image gradient; for colour, per pixel that of the channel where it is largest.
-
-    Taking the strongest channel (as LINE-MOD does) keeps edges between
-    colours of equal brightness, which any single grey conversion loses.
-    """
+    """Gradient of the smoothed image; for colour, per pixel that of the
+    channel where it is largest (:func:`viewloc_core.gradient.image_gradient`)."""
     arr = np.asarray(image)
     if arr.ndim == 3 and arr.shape[2] >= 3:
         scale = 1.0 / (255.0 if arr.dtype == np.uint8 else 65535.0)
-        colour = cv2.GaussianBlur(arr[:, :, :3].astype(np.float32) * scale, (0, 0), 1.0)
-        gx3 = cv2.Sobel(colour, cv2.CV_32F, 1, 0, ksize=3)
-        gy3 = cv2.Sobel(colour, cv2.CV_32F, 0, 1, ksize=3)
-        best = np.argmax(gx3 * gx3 + gy3 * gy3, axis=2)[:, :, None]
-        return (
-            np.asarray(np.take_along_axis(gx3, best, axis=2)[:, :, 0], np.float32),
-            np.asarray(np.take_along_axis(gy3, best, axis=2)[:, :, 0], np.float32),
-        )
-    return (
-        np.asarray(cv2.Sobel(smooth_grey, cv2.CV_32F, 1, 0, ksize=3), np.float32),
-        np.asarray(cv2.Sobel(smooth_grey, cv2.CV_32F, 0, 1, ksize=3), np.float32),
-    )
+        colour = cv2.GaussianBlur(arr[:, :, :3].astype(np.float32) * np.float32(scale),
+                                  (0, 0), 1.0)
+        return image_gradient(np.asarray(colour, np.float32))
+    return image_gradient(smooth_grey)
 
 
 def orientation_bin(theta: NDArray[np.floating]) -> NDArray[np.int64]:

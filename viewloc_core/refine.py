@@ -40,6 +40,7 @@ from scipy.spatial import cKDTree
 from viewloc_core.camera import Camera
 from viewloc_core.contour_model import ContourModel
 from viewloc_core.errors import InvalidImageError, InvalidInputError
+from viewloc_core.gradient import image_gradient
 from viewloc_core.pose import Pose
 
 Array = NDArray[np.float64]
@@ -117,33 +118,6 @@ def _as_float_image(image: NDArray[np.generic]) -> NDArray[np.float32]:
     return np.ascontiguousarray(out)
 
 
-def _sobel(img: NDArray[np.float32]) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-    gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
-    gy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
-    return np.asarray(gx, dtype=np.float32), np.asarray(gy, dtype=np.float32)
-
-
-def _gradient(img: NDArray[np.float32]) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-    """(∂I/∂x, ∂I/∂y) planes of a grey or colour image."""
-    if img.ndim == 2:
-        gx, gy = _sobel(img)
-    else:
-        # Per pixel the channel with the strongest edge (the first one on
-        # ties). Whole-plane OpenCV operations: numpy's argmax over a
-        # trailing axis of 3 and take_along_axis cost about 5 ms at 384x288.
-        channels = [np.asarray(c, dtype=np.float32) for c in cv2.split(img)]
-        gx, gy = _sobel(channels[0])
-        best_mag = cv2.add(cv2.multiply(gx, gx), cv2.multiply(gy, gy))
-        for channel in channels[1:]:
-            cx, cy = _sobel(channel)
-            mag = cv2.add(cv2.multiply(cx, cx), cv2.multiply(cy, cy))
-            stronger = cv2.compare(mag, best_mag, cv2.CMP_GT)
-            cv2.copyTo(cx, stronger, gx)
-            cv2.copyTo(cy, stronger, gy)
-            cv2.max(best_mag, mag, best_mag)
-    return gx, gy
-
-
 def prepare_edges(image: NDArray[np.generic], levels: int = 3) -> EdgePyramid:
     """Gradient pyramid of an image (grey or colour, uint8 or uint16).
 
@@ -168,7 +142,7 @@ def prepare_edges(image: NDArray[np.generic], levels: int = 3) -> EdgePyramid:
     for level in range(levels):
         if level > 0:
             current = np.asarray(cv2.pyrDown(current), dtype=np.float32)
-        gx, gy = _gradient(current)
+        gx, gy = image_gradient(current)
         planes.append((gx, gy))
         grads.append(np.asarray(cv2.merge([gx, gy]), dtype=np.float32))
         if min(current.shape[:2]) < 16:
