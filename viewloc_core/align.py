@@ -92,7 +92,7 @@ class AlignConfig:
     max_peaks: int = 12
     hypotheses_per_peak: int = 4
     max_bins: int = 40
-    max_scored: int = 16
+    max_scored: int = 10
     max_hypotheses: int = 5
     max_alternatives: int = 2
     min_coverage: float = 0.25
