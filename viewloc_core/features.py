@@ -74,6 +74,13 @@ class FeatureConfig:
         Largest RMS distance of an arc's pixels from its circle: the larger
         of the absolute value and the fraction of the radius (slightly
         oblique circles are ellipses that a circle fits within a few percent).
+    texture_radius_px : int
+        Half-size of the window in which an edge pixel's surround is examined
+        for texture.
+    texture_other_density : float
+        An edge pixel is texture, and dropped, when more than this share of
+        the pixels in its window are edges of other orientations (more than
+        ±22.5° off its own); 1 or more switches the suppression off.
     """
 
     min_segment_px: float = 7.0
@@ -88,6 +95,8 @@ class FeatureConfig:
     arc_min_span_deg: float = 80.0
     arc_max_rms_px: float = 0.6
     arc_max_rms_frac: float = 0.006
+    texture_radius_px: int = 12
+    texture_other_density: float = 0.15
 
 
 @dataclass(frozen=True, slots=True)
@@ -269,6 +278,15 @@ def extract_features(
     if mask is not None:
         keep = cv2.dilate(mask.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
         edges[~keep] = 0
+    segment_mask = mask
+    if config.texture_other_density < 1.0:
+        texture = _texture_edges(edges, gx, gy, config)
+        edges[texture] = 0
+        # LSD works on the grey image, not on the edge map: its segments in
+        # textured areas (where hardly a pixel is 2 px from a texture edge)
+        # go too.
+        away = cv2.erode((~texture).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+        segment_mask = away if mask is None else (mask & away)
     ys, xs = np.nonzero(edges)
     # Edge tangent is perpendicular to the gradient; modulo π for polarity.
     tangent = (np.arctan2(gy[ys, xs], gx[ys, xs]) + np.pi / 2.0) % np.pi
@@ -278,7 +296,7 @@ def extract_features(
     # LSD wants 8 bit: stretch between robust extremes so dim images keep edges.
     lo_v, hi_v = np.percentile(smooth[::2, ::2], [1.0, 99.0])
     grey8 = np.clip((smooth - lo_v) * (255.0 / max(hi_v - lo_v, 1e-6)), 0, 255).astype(np.uint8)
-    segments = _segments(grey8, config, mask)
+    segments = _segments(grey8, config, segment_mask)
     bits = orientation_bits_map(edge_xy, edge_theta, (h, w), spread_px)
     if len(edge_xy):
         # Labels of DIST_LABEL_PIXEL number the zero pixels in raster order,
@@ -293,6 +311,53 @@ def extract_features(
     arcs = _arcs(edges, edge_xy, edge_theta, nearest, dist, config)
     grouped = _concat_parts([_group(segments, config), arcs])
     return ImageFeatures(edge_xy, edge_theta, segments, grouped, bits, nearest, dist, (h, w))
+
+
+def _texture_edges(edges: NDArray[np.uint8], gx: F32, gy: F32,
+                   config: FeatureConfig) -> NDArray[np.bool_]:
+    """Edge pixels inside texture (surround suppression, as in Grigorescu,
+    Petkov & Westenberg 2003, "Contour detection based on nonclassical
+    receptive field inhibition").
+
+    A part's outline has few edges of other orientations around it (a corner,
+    a hole nearby), texture and print have many in every direction. Counting
+    only *other* orientations keeps dense parallel outlines (the faces of a
+    thin plate) and a circle larger than the window's reach.
+
+    Parameters
+    ----------
+    edges : (H, W) uint8
+        Canny edge map (non-zero = edge).
+    gx, gy : (H, W) float32
+        Image gradient.
+    config : FeatureConfig
+        ``texture_radius_px`` and ``texture_other_density``.
+
+    Returns
+    -------
+    (H, W) bool
+        True at edge pixels to drop.
+    """
+    on = edges > 0
+    ys, xs = np.nonzero(on)
+    drop = np.zeros(edges.shape, bool)
+    if len(ys) == 0:
+        return drop
+    n_bins = 8
+    theta = np.mod(np.arctan2(gy[ys, xs], gx[ys, xs]), np.pi)
+    b = np.minimum((theta * (n_bins / np.pi)).astype(np.int64), n_bins - 1)
+    size = (2 * config.texture_radius_px + 1,) * 2
+    per_bin = np.empty((n_bins, *edges.shape), np.float32)
+    for i in range(n_bins):
+        plane = np.zeros(edges.shape, np.float32)
+        plane[ys[b == i], xs[b == i]] = 1.0
+        per_bin[i] = cv2.boxFilter(plane, -1, size, borderType=cv2.BORDER_REFLECT)
+    total = per_bin.sum(axis=0)[ys, xs]
+    # Own orientation and its two neighbours (±22.5°) count as "same".
+    same = (per_bin[b, ys, xs] + per_bin[(b + 1) % n_bins, ys, xs]
+            + per_bin[(b - 1) % n_bins, ys, xs])
+    drop[ys, xs] = (total - same) > config.texture_other_density
+    return drop
 
 
 def _gradient(image: NDArray[np.generic], smooth_grey: F32) -> tuple[F32, F32]:

@@ -116,3 +116,42 @@ def test_concurrent_extraction_in_threads_is_safe_and_identical():
             got = list(pool.map(lambda im: extract_features(im).segments, images))
             for a, b in zip(expected, got, strict=True):
                 np.testing.assert_array_equal(a, b)
+
+
+def _on_outline(feats, x0, y0, x1, y1, tol=2.0):
+    """Edge pixels within ``tol`` of the rectangle's outline, and their count."""
+    x, y = feats.edge_xy[:, 0], feats.edge_xy[:, 1]
+    inside_x = (x > x0 - tol) & (x < x1 + tol)
+    inside_y = (y > y0 - tol) & (y < y1 + tol)
+    near_v = inside_y & ((np.abs(x - x0) <= tol) | (np.abs(x - x1) <= tol))
+    near_h = inside_x & ((np.abs(y - y0) <= tol) | (np.abs(y - y1) <= tol))
+    return near_v | near_h
+
+
+def test_texture_edges_are_suppressed_and_the_outline_kept():
+    rng = np.random.default_rng(3)
+    # Turbulent two-tone texture (blurred noise, thresholded), a flat part on it.
+    noise = cv2.GaussianBlur(rng.normal(size=(240, 320)).astype(np.float32), (0, 0), 1.0)
+    img = np.where(noise > 0, 170, 120).astype(np.uint8)
+    x0, y0, x1, y1 = 100, 70, 220, 170
+    cv2.rectangle(img, (x0, y0), (x1, y1), 230, thickness=-1)
+    from viewloc_core.features import FeatureConfig
+
+    plain = extract_features(img, FeatureConfig(texture_other_density=1.0))
+    kept = extract_features(img)
+    outline_plain = _on_outline(plain, x0, y0, x1, y1)
+    outline_kept = _on_outline(kept, x0, y0, x1, y1)
+    # Most of the outline survives, most of the texture goes.
+    assert outline_kept.sum() >= 0.6 * outline_plain.sum()
+    assert (~outline_kept).sum() <= 0.3 * (~outline_plain).sum()
+
+
+def test_texture_suppression_leaves_a_clean_image_alone():
+    from viewloc_core.features import FeatureConfig
+
+    img = _square_image()
+    cv2.circle(img, (120, 95), 25, 90, thickness=-1)  # a hole: all orientations nearby
+    plain = extract_features(img, FeatureConfig(texture_other_density=1.0))
+    kept = extract_features(img)
+    np.testing.assert_array_equal(plain.edge_xy, kept.edge_xy)
+    assert len(kept.grouped) == len(plain.grouped)
