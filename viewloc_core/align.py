@@ -34,6 +34,7 @@ from viewloc_core.features import (
     KIND_PARALLEL,
     ImageFeatures,
     orientation_bin,
+    wanted_bits,
 )
 from viewloc_core.model import ModelView, ObjectModel
 
@@ -308,7 +309,7 @@ def coverage(
     shift = int(np.floor(np.mod(sim[2], np.pi) / np.pi * 16 + 0.5))
     b = (bins + shift) % 16
     # Accept the bin and its two neighbours (±1 bin = ±11.25°).
-    want = (1 << b) | (1 << ((b + 1) % 16)) | (1 << ((b - 1) % 16))
+    want = wanted_bits(b)
     got = np.zeros(len(pts), np.uint16)
     got[inside] = feats.orientation_bits[v[inside], u[inside]]
     return float(np.count_nonzero(got & want.astype(np.uint16)) / len(pts))
@@ -475,7 +476,7 @@ def _coverage_many(feats: ImageFeatures, sims: F64, pts: F64, bins: NDArray[np.i
     inside = (u >= 0) & (u < w) & (v >= 0) & (v < h) & valid
     shift = np.floor(np.mod(sims[:, 2], np.pi) / np.pi * 16 + 0.5).astype(np.int64)
     b = (bins + shift[:, None]) % 16
-    want = (1 << b) | (1 << ((b + 1) % 16)) | (1 << ((b - 1) % 16))
+    want = wanted_bits(b)
     got = np.zeros(u.shape, np.int64)
     got[inside] = feats.orientation_bits[v[inside], u[inside]]
     hit = (got & want) != 0

@@ -378,6 +378,14 @@ def orientation_bin(theta: NDArray[np.floating]) -> NDArray[np.int64]:
     return np.minimum((t / np.pi * ORIENTATION_BINS).astype(np.int64), ORIENTATION_BINS - 1)
 
 
+def wanted_bits(bins: NDArray[np.integer]) -> NDArray[np.int64]:
+    """Bits of orientation bins and of their two neighbours (±11.25°): what a
+    sample of bin ``b`` accepts in the spread orientation map."""
+    b = np.asarray(bins, dtype=np.int64)
+    n = ORIENTATION_BINS
+    return (1 << b) | (1 << ((b + 1) % n)) | (1 << ((b - 1) % n))
+
+
 def orientation_bits_map(
     edge_xy: F32, edge_theta: F32, shape: tuple[int, int], spread_px: int
 ) -> NDArray[np.uint16]:

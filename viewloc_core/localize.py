@@ -34,7 +34,7 @@ from viewloc_core.contour_model import ContourModel
 from viewloc_core.detection import Detection, Similarity2D
 from viewloc_core.errors import InvalidInputError
 from viewloc_core.features import ImageFeatures, extract_features, orientation_bin, to_grey_float
-from viewloc_core.model import ObjectModel
+from viewloc_core.model import ObjectModel, cached_per_model
 from viewloc_core.pose import Pose
 from viewloc_core.pose_from_match import pose_from_similarity
 from viewloc_core.refine import (
@@ -113,11 +113,7 @@ _INDEX_CACHE: weakref.WeakKeyDictionary[ObjectModel, ModelIndex] = weakref.WeakK
 
 def model_index(model: ObjectModel) -> ModelIndex:
     """The alignment index of a model, built once and cached while the model lives."""
-    index = _INDEX_CACHE.get(model)
-    if index is None:
-        index = build_index(model)
-        _INDEX_CACHE[model] = index
-    return index
+    return cached_per_model(_INDEX_CACHE, model, build_index)
 
 
 _CONTOUR_CACHE: weakref.WeakKeyDictionary[ObjectModel, ContourModel] = (
@@ -129,11 +125,8 @@ def _contour_model(model: ObjectModel) -> ContourModel | None:
     """The model's contour model for refinement (None without a mesh), cached."""
     if model.contour is None:
         return None
-    contour = _CONTOUR_CACHE.get(model)
-    if contour is None:
-        contour = ContourModel.from_arrays(model.contour)
-        _CONTOUR_CACHE[model] = contour
-    return contour
+    arrays = model.contour
+    return cached_per_model(_CONTOUR_CACHE, model, lambda _: ContourModel.from_arrays(arrays))
 
 
 def _member_view(

@@ -18,8 +18,10 @@ The model is stored as plain arrays plus JSON metadata with a schema version
 from __future__ import annotations
 
 import json
+import weakref
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -319,3 +321,22 @@ def model_from_arrays(arrays: dict[str, NDArray[Any]], meta: dict[str, Any]) -> 
         raise ModelFormatError(
             f"model arrays are incomplete or inconsistent: {exc}", "model"
         ) from exc
+
+
+_Derived = TypeVar("_Derived")
+
+
+def cached_per_model(
+    cache: weakref.WeakKeyDictionary[ObjectModel, _Derived], model: ObjectModel,
+    build: Callable[[ObjectModel], _Derived],
+) -> _Derived:
+    """``build(model)``, computed once and kept in ``cache`` while the model lives.
+
+    Search structures derived from a model (alignment index, view templates,
+    contour model) are built on first use, not stored in the model file.
+    """
+    value = cache.get(model)
+    if value is None:
+        value = build(model)
+        cache[model] = value
+    return value

@@ -112,11 +112,16 @@ def _same_transform(A: Array, B: Array, diameter: float) -> bool:
     )
 
 
-def _close_group(generators: list[Array], diameter: float) -> list[Array]:
-    """All products of the generators (finite group), identity first."""
+def _close_group(generators: list[Array], diameter: float,
+                 limit: int = _MAX_GROUP) -> list[Array]:
+    """All products of the generators (finite group), identity first.
+
+    Stops after the pass in which the group reaches ``limit`` elements (then
+    it is no finite group of a rigid part, or a larger one than wanted).
+    """
     group = [np.eye(4)]
     frontier = [np.eye(4)]
-    while frontier and len(group) < _MAX_GROUP:
+    while frontier and len(group) < limit:
         new = []
         for g in frontier:
             for h in generators:
@@ -477,38 +482,6 @@ def _declared_transform(flat: Any, to_mm: float, field: str) -> Array:
     return out
 
 
-def _index_of(T: Array, group: Array, tol_mm: float) -> int:
-    """Index of an element of ``group`` (K, 4, 4) equal to ``T`` within 0.5° / ``tol_mm``; -1."""
-    if len(group) == 0:
-        return -1
-    # Angle of R_a^T R_b from its trace, vectorised over the group.
-    cos = (np.einsum("kij,ij->k", group[:, :3, :3], T[:3, :3]) - 1.0) / 2.0
-    same = (cos > math.cos(math.radians(0.5))) & (
-        np.linalg.norm(group[:, :3, 3] - T[:3, 3], axis=1) < tol_mm)
-    hits = np.flatnonzero(same)
-    return int(hits[0]) if len(hits) else -1
-
-
-def _close_declared(generators: list[Array], tol_mm: float) -> Array | None:
-    """The finite group the generators generate (identity first); None when it exceeds
-    :data:`_MAX_DECLARED_GROUP` elements (not a finite group, e.g. an irrational angle)."""
-    group = np.eye(4)[None]
-    frontier = [np.eye(4)]
-    while frontier:
-        new: list[Array] = []
-        for g in frontier:
-            for h in generators:
-                prod = h @ g
-                prod[:3, :3] = orthonormalize(prod[:3, :3])
-                if _index_of(prod, group, tol_mm) < 0:
-                    group = np.concatenate([group, prod[None]])
-                    new.append(prod)
-                    if len(group) > _MAX_DECLARED_GROUP:
-                        return None
-        frontier = new
-    return group
-
-
 def declared_symmetries(
     info: Mapping[str, Any], *, to_mm: float = 1.0, diameter_mm: float | None = None
 ) -> Symmetries:
@@ -588,13 +561,13 @@ def declared_symmetries(
          0.0 if offset is None else float(np.linalg.norm(offset))])
     tol_mm = 1e-3 * scale
     if axis is None or offset is None:
-        group = _close_declared([T for T in transforms if _index_of(T, np.eye(4)[None],
-                                                                     tol_mm) < 0], tol_mm)
-        if group is None:
+        group = _close_group([T for T in transforms if not _same_transform(T, np.eye(4), scale)],
+                             scale, limit=_MAX_DECLARED_GROUP + 1)
+        if len(group) > _MAX_DECLARED_GROUP:
             raise InvalidInputError(
                 f"the discrete symmetries generate more than {_MAX_DECLARED_GROUP} transforms "
                 "(an angle that is no whole fraction of 360°?)", "symmetries_discrete")
-        return Symmetries(group)
+        return Symmetries(np.stack(group))
     flip: Array | None = None
     for k, T in enumerate(transforms):
         field = f"symmetries_discrete[{k}]"

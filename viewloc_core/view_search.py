@@ -30,9 +30,10 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from viewloc_core import similarity as sim2
 from viewloc_core.align import _extend_many, _spread_subset
-from viewloc_core.features import ORIENTATION_BINS, ImageFeatures, orientation_bin
-from viewloc_core.model import ObjectModel
+from viewloc_core.features import ORIENTATION_BINS, ImageFeatures, orientation_bin, wanted_bits
+from viewloc_core.model import ObjectModel, cached_per_model
 
 F64 = NDArray[np.float64]
 
@@ -127,20 +128,10 @@ _TEMPLATES: weakref.WeakKeyDictionary[ObjectModel, ViewTemplates] = weakref.Weak
 
 def view_templates(model: ObjectModel) -> ViewTemplates:
     """The model's view templates, built once and cached while the model lives."""
-    templates = _TEMPLATES.get(model)
-    if templates is None:
-        templates = build_templates(model)
-        _TEMPLATES[model] = templates
-    return templates
+    return cached_per_model(_TEMPLATES, model, build_templates)
 
 
-def _wanted_bits(bins: NDArray[np.int64]) -> NDArray[np.int64]:
-    """Bits of an orientation bin and its two neighbours (±11.25°)."""
-    n = ORIENTATION_BINS
-    return (1 << bins) | (1 << ((bins + 1) % n)) | (1 << ((bins - 1) % n))
-
-
-_WANTED = _wanted_bits(np.arange(ORIENTATION_BINS)).astype(np.uint16)
+_WANTED = wanted_bits(np.arange(ORIENTATION_BINS)).astype(np.uint16)
 
 
 def chance_rates(feats: ImageFeatures) -> F64:
@@ -156,7 +147,7 @@ def chance_rates(feats: ImageFeatures) -> F64:
         In [0.005, 0.95]: the clutter model of the score.
     """
     bits = feats.orientation_bits[::2, ::2].astype(np.int64)
-    wanted = _wanted_bits(np.arange(ORIENTATION_BINS))
+    wanted = _WANTED.astype(np.int64)
     rates = np.array([np.count_nonzero(bits & w) for w in wanted]) / max(bits.size, 1)
     return np.clip(rates, 0.005, 0.95)
 
@@ -256,7 +247,7 @@ def _distinct_seeds(seeds: F64) -> F64:
     for s in seeds:
         covered = any(
             np.hypot(s[0] - k[0], s[1] - k[1]) < 3.0
-            and abs(float(np.angle(np.exp(1j * (s[2] - k[2]))))) < np.radians(7.5)
+            and abs(float(sim2.wrap_angle(s[2] - k[2]))) < np.radians(7.5)
             and abs(np.log(s[3] / k[3])) < 0.07
             for k in kept
         )

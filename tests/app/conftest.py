@@ -22,7 +22,7 @@ TEST_TASKS = {
     "sleepy": "tests.app.job_funcs:sleepy",
     "crash": "tests.app.job_funcs:crash",
     "bad_input": "tests.app.job_funcs:bad_input",
-    "stubborn": "tests.app.job_funcs:stubborn",
+    "ignores_cancel": "tests.app.job_funcs:ignores_cancel",
 }
 
 

@@ -37,8 +37,8 @@ def bad_input(store: ModelStore, job: JobRecord, progress: Callable[[str, float]
     raise InvalidInputError("the mesh has no faces", "mesh")
 
 
-def stubborn(store: ModelStore, job: JobRecord, progress: Callable[[str, float], None],
-             should_stop: Callable[[], bool]) -> Any:
+def ignores_cancel(store: ModelStore, job: JobRecord, progress: Callable[[str, float], None],
+                   should_stop: Callable[[], bool]) -> Any:
     """Ignores cancellation (a long C call); the runner must kill it."""
     progress("busy in C", 0.1)
     time.sleep(60)

@@ -54,14 +54,14 @@ def test_runner_protocol_progress_crash_and_failure(tmp_path: Path) -> None:
     assert not runner.is_running()
 
 
-def test_cancel_queued_running_and_stubborn_jobs_with_one_worker(tmp_path: Path) -> None:
+def test_cancel_queued_running_and_cancel_ignoring_jobs_with_one_worker(tmp_path: Path) -> None:
     store = ModelStore(tmp_path)
     runner = LocalJobRunner(store, workers=1, tasks=TEST_TASKS, poll_interval_s=0.1,
                             cancel_grace_s=0.5)
     runner.start()
     try:
         first, second, third = (_queue(store, "sleepy"), _queue(store, "sleepy"),
-                                _queue(store, "stubborn"))
+                                _queue(store, "ignores_cancel"))
         runner.submit(first)
         _wait(lambda: store.get_job(first.job_id).progress > 0)
         # Bounded concurrency: one worker, so the others wait queued.

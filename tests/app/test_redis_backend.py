@@ -133,11 +133,11 @@ def test_worker_learns_through_the_api_cancels_and_records_dead_horses(
         assert store.get_job(job_id).owner is not None  # claimed by the worker's runner id
 
         # A job that ignores cancellation: the worker kills its horse after the grace.
-        stubborn = _queue(srv, "stubborn")
-        _wait(lambda: store.get_job(stubborn.job_id).stage == "busy in C", 20, "stubborn start")
+        ignoring = _queue(srv, "ignores_cancel")
+        _wait(lambda: store.get_job(ignoring.job_id).stage == "busy in C", 20, "ignoring start")
         t0 = time.monotonic()
-        assert client.delete(f"/v1/jobs/{stubborn.job_id}").status_code == 200
-        done = wait_job(client, stubborn.job_id, timeout=15)
+        assert client.delete(f"/v1/jobs/{ignoring.job_id}").status_code == 200
+        done = wait_job(client, ignoring.job_id, timeout=15)
         assert done["state"] == "cancelled", done
         assert time.monotonic() - t0 < 10
 
