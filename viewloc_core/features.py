@@ -64,6 +64,12 @@ class FeatureConfig:
     edge_low_frac, edge_high_frac : float
         Canny hysteresis thresholds as fractions of the 98th percentile of the
         gradient magnitude, so the edge map does not depend on exposure.
+    edge_floor_lsb : float
+        Neither threshold goes below this gradient, in quantisation steps
+        (LSB of the image's integer type) per pixel. In a nearly empty, smooth
+        image the 98th percentile is the ramp between two grey levels, and
+        without a floor the banding of a smooth gradient becomes edges. One
+        LSB per pixel is a step of about 2.5 grey levels after the smoothing.
     arc_min_radius_px, arc_max_radius_px : float
         Radius range of circular arcs, pixels.
     arc_min_span_deg : float
@@ -90,6 +96,7 @@ class FeatureConfig:
     parallel_max_angle_deg: float = 8.0
     edge_low_frac: float = 0.08
     edge_high_frac: float = 0.2
+    edge_floor_lsb: float = 1.0
     arc_min_radius_px: float = 10.0
     arc_max_radius_px: float = 400.0
     arc_min_span_deg: float = 80.0
@@ -271,9 +278,10 @@ def extract_features(
     norm = 1000.0 / ref
     dx16 = np.clip(gx * norm, -32000, 32000).astype(np.int16)
     dy16 = np.clip(gy * norm, -32000, 32000).astype(np.int16)
+    floor = config.edge_floor_lsb * _quantisation_step(image) * norm
     edges = cv2.Canny(
-        dx16, dy16, config.edge_low_frac * 1000.0, config.edge_high_frac * 1000.0,
-        L2gradient=True,
+        dx16, dy16, max(config.edge_low_frac * 1000.0, 0.5 * floor),
+        max(config.edge_high_frac * 1000.0, floor), L2gradient=True,
     )
     if mask is not None:
         keep = cv2.dilate(mask.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
@@ -358,6 +366,17 @@ def _texture_edges(edges: NDArray[np.uint8], gx: F32, gy: F32,
             + per_bin[(b - 1) % n_bins, ys, xs])
     drop[ys, xs] = (total - same) > config.texture_other_density
     return drop
+
+
+def _quantisation_step(image: NDArray[np.generic]) -> float:
+    """One grey level in the [0, 1] intensity unit of :func:`to_grey_float`;
+    0 for float images (no known quantisation)."""
+    dtype = np.asarray(image).dtype
+    if dtype == np.uint8:
+        return 1.0 / 255.0
+    if dtype == np.uint16:
+        return 1.0 / 65535.0
+    return 0.0
 
 
 def _gradient(image: NDArray[np.generic], smooth_grey: F32) -> tuple[F32, F32]:

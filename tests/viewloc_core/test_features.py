@@ -155,3 +155,18 @@ def test_texture_suppression_leaves_a_clean_image_alone():
     kept = extract_features(img)
     np.testing.assert_array_equal(plain.edge_xy, kept.edge_xy)
     assert len(kept.grouped) == len(plain.grouped)
+
+
+def test_banding_of_a_smooth_gradient_is_not_an_edge():
+    # A pale vertical ramp over 12 grey levels quantised to 8 bit: each step
+    # is one grey level. With the object small, the 98th percentile of the
+    # gradient is such a step; only the square's outline may become edges.
+    h, w = 240, 320
+    ramp = np.round(np.linspace(230.0, 242.0, w))[None, :].repeat(h, axis=0)
+    img = ramp.astype(np.uint8)
+    cv2.rectangle(img, (140, 100), (170, 130), 200, -1)
+    feats = extract_features(img)
+    assert len(feats.edge_xy) > 80
+    x, y = feats.edge_xy[:, 0], feats.edge_xy[:, 1]
+    on_square = (x >= 136) & (x <= 174) & (y >= 96) & (y <= 134)
+    assert on_square.all()
