@@ -229,6 +229,36 @@ def _canonical_camera(config: LearningConfig, diameter_mm: float) -> tuple[float
     return d0, f, size
 
 
+def _canonical_map(camera: Camera, view: TrainingView, d0_mm: float, f_px: float,
+                   size_px: int) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """Where each canonical training-camera pixel lies in a real training image.
+
+    The canonical camera (focal ``f_px``, square pixels, no distortion,
+    principal point at the centre) sees the object at ``d0_mm`` with the
+    photo's in-plane turn undone; the photo's camera sees it at
+    ``view.distance_mm`` on its optical axis. Going through the photo
+    camera's own projection handles non-square pixels and lens distortion.
+
+    Returns
+    -------
+    map_x, map_y : (size_px, size_px) float32
+        Source pixel coordinates for :func:`cv2.remap`.
+    """
+    c = (size_px - 1) / 2.0
+    v, u = np.mgrid[0:size_px, 0:size_px].astype(np.float64)
+    # Canonical pixel -> normalised ray of the photo camera: scale by the
+    # distance ratio, then turn by the in-plane angle.
+    k = d0_mm / (f_px * view.distance_mm)
+    a = math.radians(view.inplane_deg)
+    du, dv = (u - c).ravel() * k, (v - c).ravel() * k
+    x_n = math.cos(a) * du - math.sin(a) * dv
+    y_n = math.sin(a) * du + math.cos(a) * dv
+    uv = camera.project(np.column_stack([x_n, y_n, np.ones_like(x_n)]))
+    map_x = uv[:, 0].reshape(size_px, size_px).astype(np.float32)
+    map_y = uv[:, 1].reshape(size_px, size_px).astype(np.float32)
+    return map_x, map_y
+
+
 def _sample_from_image(
     image: NDArray[np.generic], mask: NDArray[np.bool_] | None, centre: float,
     config: LearningConfig, rng: np.random.Generator,
@@ -634,9 +664,10 @@ def learn_from_images(
 ) -> ObjectModel:
     """Learn from real images with known viewpoints (the paper's real-image path).
 
-    Each image is warped into the canonical training camera (scale from its
-    distance and focal length, in-plane rotation undone), so both sources give
-    identical model views.
+    Each image is resampled into the canonical training camera (scale from its
+    distance and focal lengths, in-plane rotation undone, non-square pixels
+    and lens distortion removed through the camera's own projection), so both
+    sources give identical model views.
 
     Parameters
     ----------
@@ -684,20 +715,14 @@ def learn_from_images(
                 f"image is {img.shape[1]}x{img.shape[0]}, camera says "
                 f"{camera.width}x{camera.height}", f"images[{i}]",
             )
-        # Real image -> canonical: scale k, rotate by -inplane, origin to centre.
-        k = (f / d0) / (camera.focal_px / view.distance_mm)
-        a = -math.radians(view.inplane_deg)
-        A = k * np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
-        pp = np.array([camera.cx, camera.cy])
-        M = np.hstack([A, (np.array([c, c]) - A @ pp)[:, None]])
-        warped = cv2.warpAffine(img, M, (size, size), flags=cv2.INTER_LINEAR)
+        map_x, map_y = _canonical_map(camera, view, d0, f, size)
+        warped = cv2.remap(img, map_x, map_y, cv2.INTER_LINEAR)
         mask_w = None
         if masks is not None and masks[i] is not None:
             m = np.asarray(masks[i])
             if m.shape[:2] != img.shape[:2]:
                 raise InvalidInputError("mask size differs from its image", f"masks[{i}]")
-            mask_w = cv2.warpAffine((m > 0).astype(np.uint8), M, (size, size),
-                                    flags=cv2.INTER_NEAREST) > 0
+            mask_w = cv2.remap((m > 0).astype(np.uint8), map_x, map_y, cv2.INTER_NEAREST) > 0
         sample = _sample_from_image(warped, mask_w, c, config, gen)
         direction = direction_from_angles(view.azimuth_deg, view.polar_deg)
         clusterer.add(sample, direction)

@@ -1,11 +1,19 @@
 """Learning: configuration checks, determinism, both training sources."""
 
+import cv2
 import numpy as np
 import pytest
 
 from viewloc_core.camera import Camera
 from viewloc_core.errors import Cancelled, InvalidInputError
-from viewloc_core.learn import LearningConfig, TrainingView, learn_from_images, learn_from_mesh
+from viewloc_core.learn import (
+    LearningConfig,
+    TrainingView,
+    _canonical_camera,
+    _canonical_map,
+    learn_from_images,
+    learn_from_mesh,
+)
 from viewloc_core.model import model_to_arrays
 from viewloc_core.pose import Pose
 from viewloc_core.view_sphere import view_directions
@@ -80,3 +88,37 @@ def test_learning_from_real_style_images(renderer, bracket_mesh):
 def _inplane(angle_deg: float) -> np.ndarray:
     a = np.radians(angle_deg)
     return np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+
+
+def test_photos_with_non_square_pixels_and_distortion_warp_like_ideal_ones(renderer, bracket_mesh):
+    # The same view through an ideal camera and through a real one with
+    # non-square pixels, an offset principal point and barrel distortion
+    # must give the same canonical training image.
+    ideal = Camera(600.0, 600.0, 319.5, 239.5, 640, 480)
+    real = Camera(640.0, 580.0, 326.0, 236.0, 640, 480, dist=(-0.3, 0.1, 0.001, -0.002, 0.0))
+    view = view_directions(0)[3]
+    R = _inplane(25.0) @ view.R_m2c
+    offset = np.asarray(bracket_mesh.bounds).mean(axis=0)
+    pose = Pose(R, np.array([0.0, 0.0, 600.0]) - R @ offset)
+    photo_ideal = renderer.render(bracket_mesh, ideal, pose, background_rgb=(30, 30, 30)).color
+    # Each real pixel sees along the ray its undistorted normalised position gives.
+    v, u = np.mgrid[0:480, 0:640].astype(np.float64)
+    rays = real.ray(np.column_stack([u.ravel(), v.ravel()]))
+    xy_n = rays[:, :2] / rays[:, 2:3]
+    to_ideal = xy_n * 600.0 + np.array([319.5, 239.5])
+    photo_real = cv2.remap(photo_ideal, to_ideal[:, 0].reshape(480, 640).astype(np.float32),
+                           to_ideal[:, 1].reshape(480, 640).astype(np.float32), cv2.INTER_LINEAR)
+    training = TrainingView(view.azimuth_deg, view.polar_deg, 600.0, 25.0)
+    d0, f, size = _canonical_camera(LearningConfig(), 130.0)
+
+    def canonical(photo: np.ndarray, camera: Camera) -> np.ndarray:
+        map_x, map_y = _canonical_map(camera, training, d0, f, size)
+        return cv2.remap(photo, map_x, map_y, cv2.INTER_LINEAR).astype(np.float64)
+
+    want = canonical(photo_ideal, ideal)
+    got = canonical(photo_real, real)
+    lit = want.max(axis=2) > 40
+    assert lit.mean() > 0.1
+    assert np.abs(got - want)[lit].mean() < 4.0
+    # Ignoring the lens would not do: the real photo read as if ideal.
+    assert np.abs(canonical(photo_real, ideal) - want)[lit].mean() > 15.0
