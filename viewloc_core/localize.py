@@ -253,15 +253,16 @@ def _final_detection(
             refined = True
             pose_std = result.pose_std
             score = float(result.inlier_fraction)
-            # The reference point is where the refined pose puts the origin.
-            ref_xy = camera.project(pose_centred.t_m2c[None])[0]
-            similarity = Similarity2D(float(ref_xy[0]), float(ref_xy[1]),
-                                      similarity.angle_deg, similarity.scale)
         else:
             score = min(score, float(result.inlier_fraction))
     # The model was learned with the bounding-box centre as origin.
     pose = Pose(pose_centred.R_m2c,
                 pose_centred.t_m2c - pose_centred.R_m2c @ model.origin_offset_mm)
+    # The reported reference point is where the pose puts the object's own
+    # origin (the similarity's centre is the bounding-box centre's image).
+    ref_xy = camera.project(pose.t_m2c[None])[0]
+    similarity = Similarity2D(float(ref_xy[0]), float(ref_xy[1]), similarity.angle_deg,
+                              similarity.scale)
     if len(model.symmetries) > 1 or model.symmetry_axis is not None:
         # Symmetric equivalents look the same: report the one whose axes are
         # closest to the camera's, so the answer does not jump between them.
