@@ -391,13 +391,23 @@ def _bin_keys(views: NDArray[np.int64], sims: F64, config: AlignConfig,
 def _strongest_seeds_of_best_bins(keys: NDArray[np.int64], vote: F64,
                                   n_bins: int) -> NDArray[np.int64]:
     """Index of the strongest seed in each of the ``n_bins`` best-supported bins, best first."""
-    _, bin_of = np.unique(keys, return_inverse=True)
-    support = np.bincount(bin_of, weights=vote)
-    # Seeds sorted by bin, strongest first within a bin: the first of each
-    # run is its bin's strongest seed (bins come out in order 0, 1, ...).
-    order = np.lexsort((-vote, bin_of))
-    sorted_bins = bin_of[order]
-    strongest = order[np.r_[True, sorted_bins[1:] != sorted_bins[:-1]]]
+    if len(keys) == 0:
+        return np.zeros(0, np.int64)
+    # One stable sort by key groups the bins (numbered 0, 1, ... in key
+    # order, as np.unique would) with each bin's seeds in index order, so
+    # the supports add up in the same order as a bincount over the seeds.
+    order = np.argsort(keys, kind="stable")
+    sorted_keys = keys[order]
+    first = np.r_[True, sorted_keys[1:] != sorted_keys[:-1]]
+    bin_sorted = np.cumsum(first) - 1
+    start = np.flatnonzero(first)
+    vote_sorted = vote[order]
+    support = np.bincount(bin_sorted, weights=vote_sorted)
+    # The strongest seed of a bin, the lowest index among equals.
+    top = np.maximum.reduceat(vote_sorted, start)
+    pos = np.arange(len(order))
+    at_top = np.where(vote_sorted == top[bin_sorted], pos, len(order))
+    strongest = order[np.minimum.reduceat(at_top, start)]
     return strongest[np.argsort(-support)[:n_bins]]
 
 
@@ -456,9 +466,16 @@ def _vote_hypotheses(views: NDArray[np.int64], sims: F64, vote: F64,
     order = np.argsort(-acc[py, px])[: config.max_peaks]
     centres = np.stack([(px[order] - 2 + 0.5) * cell, (py[order] - 2 + 0.5) * cell], axis=1)
     keys = _bin_keys(views, sims, config, False)
+    # Seeds sorted by x: each peak tests only the strip of seeds within
+    # reach in x (the bounds are widened a little against rounding).
+    by_x = np.argsort(sims[:, 0], kind="stable")
+    x_sorted = sims[by_x, 0]
+    reach = 2.0 * cell
     picked = []
     for c in centres:
-        near = np.flatnonzero(np.hypot(sims[:, 0] - c[0], sims[:, 1] - c[1]) < 2.0 * cell)
+        lo, hi = np.searchsorted(x_sorted, [c[0] - reach - 1e-6, c[0] + reach + 1e-6])
+        strip = np.sort(by_x[lo:hi])
+        near = strip[np.hypot(sims[strip, 0] - c[0], sims[strip, 1] - c[1]) < reach]
         if len(near):
             picked.append(near[_strongest_seeds_of_best_bins(
                 keys[near], vote[near], config.hypotheses_per_peak)])

@@ -81,6 +81,14 @@ class ViewTemplates:
         indices pad views with fewer samples).
     length_px : (T,) float64
         Edge length one sample stands for at scale 1, pixels.
+    px, py : (T, P) float32
+        ``pts`` split by coordinate in the precision the scoring uses.
+    bins8 : (T, P) uint8
+        ``bins`` in the integer type the scoring uses.
+    coarse_px, coarse_py : (T, C) float32
+    coarse_bins8 : (T, C) uint8
+    coarse_valid : (T, C) bool
+        The same for the coarse subsets (what every screening reads).
     """
 
     pts: F64
@@ -89,6 +97,13 @@ class ViewTemplates:
     valid: NDArray[np.bool_]
     coarse: NDArray[np.int64]
     length_px: F64
+    px: NDArray[np.float32]
+    py: NDArray[np.float32]
+    bins8: NDArray[np.uint8]
+    coarse_px: NDArray[np.float32]
+    coarse_py: NDArray[np.float32]
+    coarse_bins8: NDArray[np.uint8]
+    coarse_valid: NDArray[np.bool_]
 
     def __len__(self) -> int:
         return int(self.pts.shape[0])
@@ -120,7 +135,15 @@ def build_templates(model: ObjectModel) -> ViewTemplates:
             # the edge length each one stands for.
             nn_dist, _ = cKDTree(xy).query(xy, k=2)
             length[t] = float(np.median(nn_dist[:, 1]))
-    return ViewTemplates(pts, theta, orientation_bin(theta), valid, coarse, length)
+    bins = orientation_bin(theta)
+    px = np.ascontiguousarray(pts[..., 0], dtype=np.float32)
+    py = np.ascontiguousarray(pts[..., 1], dtype=np.float32)
+    bins8 = bins.astype(np.uint8)
+    rows = np.arange(n_views)[:, None]
+    return ViewTemplates(
+        pts, theta, bins, valid, coarse, length, px, py, bins8,
+        px[rows, coarse], py[rows, coarse], bins8[rows, coarse], valid[rows, coarse],
+    )
 
 
 _TEMPLATES: weakref.WeakKeyDictionary[ObjectModel, ViewTemplates] = weakref.WeakKeyDictionary()
@@ -209,34 +232,58 @@ def score_views(
         better than chance; independent of the object's size in the image.
     """
     if subset is None:
-        pts, bins, valid = templates.pts[views], templates.bins[views], templates.valid[views]
+        px, py = templates.px[views], templates.py[views]
+        bins, valid = templates.bins8[views], templates.valid[views]
     else:
         rows = views[:, None]
-        pts, bins = templates.pts[rows, subset], templates.bins[rows, subset]
-        valid = templates.valid[rows, subset]
+        px, py = templates.px[rows, subset], templates.py[rows, subset]
+        bins, valid = templates.bins8[rows, subset], templates.valid[rows, subset]
+    return _score(feats, px, py, bins, valid, templates.length_px[views], sims, chance)
+
+
+def _score_coarse(feats: ImageFeatures, templates: ViewTemplates, views: NDArray[np.int64],
+                  sims: F64, chance: F64) -> tuple[F64, F64, F64]:
+    """:func:`score_views` on each view's coarse subset."""
+    return _score(feats, templates.coarse_px[views], templates.coarse_py[views],
+                  templates.coarse_bins8[views], templates.coarse_valid[views],
+                  templates.length_px[views], sims, chance)
+
+
+def _score(feats: ImageFeatures, px: NDArray[np.float32], py: NDArray[np.float32],
+           bins: NDArray[np.uint8], valid: NDArray[np.bool_], length_px: F64, sims: F64,
+           chance: F64) -> tuple[F64, F64, F64]:
+    """:func:`score_views` on gathered samples: (H, P) coordinates, bins and validity."""
     h, w = feats.shape
     c = (sims[:, 3] * np.cos(sims[:, 2]))[:, None].astype(np.float32)
     sn = (sims[:, 3] * np.sin(sims[:, 2]))[:, None].astype(np.float32)
-    px = pts[..., 0].astype(np.float32)
-    py = pts[..., 1].astype(np.float32)
     u = np.rint(c * px - sn * py + sims[:, 0:1].astype(np.float32)).astype(np.int32)
     v = np.rint(sn * px + c * py + sims[:, 1:2].astype(np.float32)).astype(np.int32)
     inside = (u >= 0) & (u < w) & (v >= 0) & (v < h) & valid
-    flat = np.where(inside, v * w + u, 0)
+    flat = v * w
+    flat += u
+    flat[~inside] = 0
     got = feats.orientation_bits.ravel()[flat]
     # The samples' orientation bins turn with the in-plane angle.
-    turn = np.floor(np.mod(sims[:, 2], np.pi) / np.pi * ORIENTATION_BINS + 0.5).astype(np.int64)
-    b = (bins + turn[:, None]) % ORIENTATION_BINS
-    hit = ((got & _WANTED[b]) != 0) & inside
+    turn = np.floor(np.mod(sims[:, 2], np.pi) / np.pi * ORIENTATION_BINS + 0.5).astype(np.uint8)
+    b = bins + turn[:, None]
+    b &= ORIENTATION_BINS - 1
+    hit = (got & _WANTED[b]) != 0
+    hit &= inside
     log_hit = np.log(TRUE_HIT_RATE / chance)
     log_miss = np.log((1.0 - TRUE_HIT_RATE) / (1.0 - chance))
-    # Samples outside the image are unknown, not missing: they add nothing.
-    per_sample = np.where(hit, log_hit[b], np.where(inside, log_miss[b], 0.0))
-    weight = templates.length_px[views] * sims[:, 3]
+    # One table per outcome: outside (unknown, adds nothing), missed, hit.
+    # Samples outside the image are unknown, not missing.
+    table = np.concatenate([np.zeros(ORIENTATION_BINS), log_miss, log_hit])
+    state = inside.astype(np.uint8)
+    state += hit
+    state *= ORIENTATION_BINS
+    per_sample = table[state + b]
+    weight = length_px * sims[:, 3]
     n_valid = np.maximum(valid.sum(axis=1), 1)
     llr = per_sample.sum(axis=1)
     # The evidence had every sample in the image found its edge.
-    llr_all_found = np.where(inside, log_hit[b], 0.0).sum(axis=1)
+    found_table = np.concatenate([np.zeros(ORIENTATION_BINS), log_hit])
+    llr_all_found = found_table[inside.astype(np.uint8) * ORIENTATION_BINS + b].sum(axis=1)
     return (llr * weight, hit.sum(axis=1) / n_valid,
             llr / np.maximum(llr_all_found, 1e-9))
 
@@ -305,12 +352,12 @@ def search_views(
     stage1 = _grid_sims(seeds, np.radians(SCREEN_ANGLES_DEG), (1.0,))
     views1 = np.tile(np.arange(n_views), len(stage1))
     sims1 = np.repeat(stage1, n_views, axis=0)
-    llr1, _, _ = score_views(feats, templates, views1, sims1, chance, templates.coarse[views1])
+    llr1, _, _ = _score_coarse(feats, templates, views1, sims1, chance)
     best_views = _best_distinct(views1, llr1, SCREENED_VIEWS)
     stage2 = _grid_sims(seeds, np.radians(COARSE_ANGLES_DEG), COARSE_SCALES)
     views = np.tile(views1[best_views], len(stage2))
     sims = np.repeat(stage2, len(best_views), axis=0)
-    llr, _, _ = score_views(feats, templates, views, sims, chance, templates.coarse[views])
+    llr, _, _ = _score_coarse(feats, templates, views, sims, chance)
     # The best few distinct views go on to the least-squares fit.
     pick = _best_distinct(views, llr, FITTED_CANDIDATES)
     fit_views = views[pick]

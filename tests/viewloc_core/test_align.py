@@ -124,3 +124,48 @@ def test_suppressed_views_at_a_location_become_alternatives():
     # Other views only, at most two, in the order given.
     assert [a.model_view for a in out[0].alternatives] == [1, 3]
     assert out[1].alternatives == ()
+
+
+def test_strongest_seed_of_each_best_bin_matches_a_plain_count():
+    """Bins ranked by summed vote; in each, the strongest seed, the first on ties."""
+    from viewloc_core.align import _strongest_seeds_of_best_bins
+
+    rng = np.random.default_rng(3)
+    keys = rng.integers(0, 40, 500) * 1000
+    # Few vote levels per bin make ties within bins; a per-bin offset keeps
+    # the bin supports distinct (their order on ties is not specified).
+    vote = rng.integers(1, 6, 500) + np.sqrt(keys / 1000 + 2) / 100
+    got = _strongest_seeds_of_best_bins(keys, vote, 10)
+    bins = sorted(set(keys.tolist()))
+    support = np.array([vote[keys == b].sum() for b in bins])
+    expected = []
+    for i in np.argsort(-support, kind="stable")[:10]:
+        members = np.flatnonzero(keys == bins[i])
+        expected.append(int(members[np.argmax(vote[members])]))
+    assert got.tolist() == expected
+    assert len(_strongest_seeds_of_best_bins(np.zeros(0, np.int64), np.zeros(0), 3)) == 0
+
+
+def test_peak_neighbourhoods_hold_exactly_the_seeds_within_reach():
+    """Each peak's hypotheses come from the seeds within two cells of it,
+    however far the others are spread (the strip search must miss none)."""
+    from viewloc_core.align import AlignConfig, _vote_hypotheses
+
+    config = AlignConfig(max_peaks=1, hypotheses_per_peak=50)
+    reach = config.vote_xy_px
+    centre = np.array([(12 + 0.5) * reach / 2, (9 + 0.5) * reach / 2])  # a cell centre
+    rng = np.random.default_rng(5)
+    # A strong cluster on the centre, and single seeds of their own bins in
+    # a ring just inside and just outside the reach (other views, so every
+    # seed is its own (view, angle, scale) bin).
+    n = 60
+    ang = rng.uniform(0, 2 * np.pi, n)
+    radius = np.where(np.arange(n) % 2 == 0, reach - 0.01, reach + 0.01)
+    ring = np.column_stack([centre[0] + radius * np.cos(ang), centre[1] + radius * np.sin(ang),
+                            np.zeros(n), np.ones(n)])
+    core = np.tile([centre[0], centre[1], 0.0, 1.0], (20, 1))
+    sims = np.vstack([core, ring])
+    views = np.concatenate([np.zeros(20, np.int64), np.arange(1, n + 1)])
+    views_out, _ = _vote_hypotheses(views, sims, np.ones(len(sims)), (300, 400), config)
+    inside = set((np.flatnonzero(radius < reach) + 1).tolist())
+    assert set(views_out.tolist()) == inside | {0}
