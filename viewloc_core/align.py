@@ -355,7 +355,8 @@ def extend(
         normals = np.stack([-np.sin(img_theta), np.cos(img_theta)], axis=1)
         src = pts[ok][good]
         dst = feats.edge_xy[nn[good]].astype(np.float64)
-        resid = np.abs(((sim2.apply(current, src) - dst) * normals).sum(axis=1))
+        off = uv[ok][good] - dst
+        resid = np.abs(off[:, 0] * normals[:, 0] + off[:, 1] * normals[:, 1])
         # Huber weights: far pairings are likely clutter.
         huber = np.where(resid <= 1.0, 1.0, 1.0 / np.maximum(resid, 1e-9))
         fitted = sim2.fit_point_to_line(src, dst, normals, huber)
@@ -393,21 +394,22 @@ def _strongest_seeds_of_best_bins(keys: NDArray[np.int64], vote: F64,
     """Index of the strongest seed in each of the ``n_bins`` best-supported bins, best first."""
     if len(keys) == 0:
         return np.zeros(0, np.int64)
-    # One stable sort by key groups the bins (numbered 0, 1, ... in key
-    # order, as np.unique would) with each bin's seeds in index order, so
-    # the supports add up in the same order as a bincount over the seeds.
-    order = np.argsort(keys, kind="stable")
+    # Bins numbered 0, 1, ... in key order, as np.unique would. The supports
+    # are summed over the seeds in index order (the bincount of the
+    # original), so no stable (slow) sort is needed.
+    order = np.argsort(keys)
     sorted_keys = keys[order]
     first = np.r_[True, sorted_keys[1:] != sorted_keys[:-1]]
     bin_sorted = np.cumsum(first) - 1
     start = np.flatnonzero(first)
-    vote_sorted = vote[order]
-    support = np.bincount(bin_sorted, weights=vote_sorted)
+    bin_of = np.empty(len(keys), np.int64)
+    bin_of[order] = bin_sorted
+    support = np.bincount(bin_of, weights=vote)
     # The strongest seed of a bin, the lowest index among equals.
+    vote_sorted = vote[order]
     top = np.maximum.reduceat(vote_sorted, start)
-    pos = np.arange(len(order))
-    at_top = np.where(vote_sorted == top[bin_sorted], pos, len(order))
-    strongest = order[np.minimum.reduceat(at_top, start)]
+    at_top = np.where(vote_sorted == top[bin_sorted], order, len(keys))
+    strongest = np.minimum.reduceat(at_top, start)
     return strongest[np.argsort(-support)[:n_bins]]
 
 
@@ -466,15 +468,18 @@ def _vote_hypotheses(views: NDArray[np.int64], sims: F64, vote: F64,
     order = np.argsort(-acc[py, px])[: config.max_peaks]
     centres = np.stack([(px[order] - 2 + 0.5) * cell, (py[order] - 2 + 0.5) * cell], axis=1)
     keys = _bin_keys(views, sims, config, False)
-    # Seeds sorted by x: each peak tests only the strip of seeds within
-    # reach in x (the bounds are widened a little against rounding).
-    by_x = np.argsort(sims[:, 0], kind="stable")
-    x_sorted = sims[by_x, 0]
+    # Seeds sorted by grid column (a radix sort on int16): a peak, at the
+    # centre of column p, is within reach of seeds in columns p-2..p+2 only
+    # (the reach of two cells ends mid-column, far from rounding).
     reach = 2.0 * cell
+    column = np.clip(gx, -3, gw + 2).astype(np.int16)
+    by_column = np.argsort(column, kind="stable")
+    column_sorted = column[by_column]
     picked = []
-    for c in centres:
-        lo, hi = np.searchsorted(x_sorted, [c[0] - reach - 1e-6, c[0] + reach + 1e-6])
-        strip = np.sort(by_x[lo:hi])
+    for c, p in zip(centres, px[order], strict=True):
+        lo, hi = (int(np.searchsorted(column_sorted, p - 2, side="left")),
+                  int(np.searchsorted(column_sorted, p + 2, side="right")))
+        strip = np.sort(by_column[lo:hi])
         near = strip[np.hypot(sims[strip, 0] - c[0], sims[strip, 1] - c[1]) < reach]
         if len(near):
             picked.append(near[_strongest_seeds_of_best_bins(
@@ -571,34 +576,43 @@ def log_probability(view_data: ModelView, feats: ImageFeatures, sim: F64) -> tup
     mu = sim2.apply(sim, view_data.xy.astype(np.float64))
     var = float(sim[3]) ** 2 * view_data.pos_var.astype(np.float64) + 1.0
     gxy = g.xy.astype(np.float64)
-    d2 = ((mu[:, None, :] - gxy[None, :, :]) ** 2).sum(axis=2)
-    near = d2 <= 9.0 * var[:, None]
-    same = view_data.kind[:, None] == g.kind[None, :]
-    cand = near & same
-    if not cand.any():
-        return total, 0
-    jj, kk = np.nonzero(cand)
-    kind = view_data.kind[jj]
-    period = np.where(kind == KIND_PARALLEL, np.pi, 2 * np.pi)
-    dth = np.abs(
-        np.mod(g.theta[kk] - view_data.theta[jj] - sim[2] + period / 2, period) - period / 2
-    )
-    term = np.full(len(jj), -np.inf)
-    ok = dth <= np.radians(25.0)
+    # Pairs only form within a kind: one (model x image) distance table per kind.
+    jj_all, gain_all = [], []
     for k, sigma in ATTR_SIGMA.items():
-        sel = ok & (kind == k)
-        if not sel.any():
+        jk = np.flatnonzero(view_data.kind == k)
+        gk = np.flatnonzero(g.kind == k)
+        if len(jk) == 0 or len(gk) == 0:
+            continue
+        dx = mu[jk, 0, None] - gxy[None, gk, 0]
+        dy = mu[jk, 1, None] - gxy[None, gk, 1]
+        d2 = dx * dx + dy * dy
+        a, c = np.nonzero(d2 <= 9.0 * var[jk, None])
+        if len(a) == 0:
+            continue
+        jj, kk = jk[a], gk[c]
+        period = np.pi if k == KIND_PARALLEL else 2 * np.pi
+        dth = np.abs(
+            np.mod(g.theta[kk] - view_data.theta[jj] - sim[2] + period / 2, period) - period / 2
+        )
+        ok = dth <= np.radians(25.0)
+        jj, kk, d2_ok = jj[ok], kk[ok], d2[a[ok], c[ok]]
+        if len(jj) == 0:
             continue
         active = sigma < 100
-        da = (g.attrs[kk[sel]].astype(np.float64) - view_data.attrs[jj[sel]]) / sigma
+        da = (g.attrs[kk].astype(np.float64) - view_data.attrs[jj]) / sigma
         log_f = -0.5 * (da[:, active] ** 2).sum(axis=1) - float(
             np.sum(np.log(sigma[active] * np.sqrt(2 * np.pi)))
         )
-        log_bg = _log_background_density(k, g.attrs[kk[sel]].astype(np.float64))
-        v = var[jj[sel]]
-        log_pos = -0.5 * d2[jj[sel], kk[sel]] / v - np.log(2 * np.pi * v)
-        term[sel] = np.log(p[jj[sel]]) + log_f - log_bg + log_pos + np.log(area)
-    gain = term - log_miss[jj]
+        log_bg = _log_background_density(k, g.attrs[kk].astype(np.float64))
+        v = var[jj]
+        log_pos = -0.5 * d2_ok / v - np.log(2 * np.pi * v)
+        term = np.log(p[jj]) + log_f - log_bg + log_pos + np.log(area)
+        jj_all.append(jj)
+        gain_all.append(term - log_miss[jj])
+    if not jj_all:
+        return total, 0
+    jj = np.concatenate(jj_all)
+    gain = np.concatenate(gain_all)
     best = np.full(len(p), 0.0)
     np.maximum.at(best, jj, gain)
     paired = best > 0

@@ -354,17 +354,18 @@ def _texture_edges(edges: NDArray[np.uint8], gx: F32, gy: F32,
     n_bins = 8
     theta = np.mod(np.arctan2(gy[ys, xs], gx[ys, xs]), np.pi)
     b = np.minimum((theta * (n_bins / np.pi)).astype(np.int64), n_bins - 1)
-    size = (2 * config.texture_radius_px + 1,) * 2
-    per_bin = np.empty((n_bins, *edges.shape), np.float32)
-    for i in range(n_bins):
-        plane = np.zeros(edges.shape, np.float32)
-        plane[ys[b == i], xs[b == i]] = 1.0
-        per_bin[i] = cv2.boxFilter(plane, -1, size, borderType=cv2.BORDER_REFLECT)
-    total = per_bin.sum(axis=0)[ys, xs]
+    side = 2 * config.texture_radius_px + 1
+    # Edge counts per orientation bin in each window: one 8-channel integer
+    # box filter (counts up to side² fit in uint16 for windows to 255 px).
+    planes = np.zeros((*edges.shape, n_bins), np.uint8)
+    planes[ys, xs, b] = 1
+    counts = cv2.boxFilter(planes, cv2.CV_16U, (side, side), normalize=False,
+                           borderType=cv2.BORDER_REFLECT)[ys, xs].astype(np.int64)
+    total = counts.sum(axis=1)
     # Own orientation and its two neighbours (±22.5°) count as "same".
-    same = (per_bin[b, ys, xs] + per_bin[(b + 1) % n_bins, ys, xs]
-            + per_bin[(b - 1) % n_bins, ys, xs])
-    drop[ys, xs] = (total - same) > config.texture_other_density
+    rows = np.arange(len(ys))
+    same = counts[rows, b] + counts[rows, (b + 1) % n_bins] + counts[rows, (b - 1) % n_bins]
+    drop[ys, xs] = (total - same) > config.texture_other_density * side * side
     return drop
 
 
@@ -435,14 +436,16 @@ def orientation_bits_map(
     np.bitwise_or.at(bits, (ys, xs), (1 << b).astype(np.uint16))
     if spread_px <= 0:
         return bits
-    # OR-spreading by shifted copies (dilation would take a max, not an OR).
-    out = bits.copy()
-    for dy in range(-spread_px, spread_px + 1):
-        for dx in range(-spread_px, spread_px + 1):
-            if dx == 0 and dy == 0:
-                continue
-            src = bits[max(0, -dy): h - max(0, dy), max(0, -dx): w - max(0, dx)]
-            out[max(0, dy): h - max(0, -dy), max(0, dx): w - max(0, -dx)] |= src
+    # OR-spreading by shifted copies (dilation would take a max, not an OR),
+    # along rows, then along columns: the square window in 4r shifts, not 4r².
+    rows = bits.copy()
+    for d in range(1, spread_px + 1):
+        rows[:, d:] |= bits[:, :w - d]
+        rows[:, :w - d] |= bits[:, d:]
+    out = rows.copy()
+    for d in range(1, spread_px + 1):
+        out[d:] |= rows[:h - d]
+        out[:h - d] |= rows[d:]
     return out
 
 
@@ -613,22 +616,30 @@ def _parallel_pairs(seg: F32, config: FeatureConfig) -> _Parts:
     if len(i) == 0:
         return _no_parts()
     # Common direction (align j's direction with i's before averaging).
-    uj = u[j] * np.sign((u[i] * u[j]).sum(axis=1))[:, None]
-    dirn = u[i] + uj
+    # Sums of two products written out (the same arithmetic as .sum(axis=1)
+    # over pairs, without (N, 2) temporaries).
+    ui, uj = u[i], u[j]
+    uj *= np.sign(ui[:, 0] * uj[:, 0] + ui[:, 1] * uj[:, 1])[:, None]
+    dirn = ui + uj
     dirn /= np.linalg.norm(dirn, axis=1, keepdims=True)
-    normal = np.stack([-dirn[:, 1], dirn[:, 0]], axis=1)
-    sep = np.abs(((mid[j] - mid[i]) * normal).sum(axis=1))
+    dx, dy = dirn[:, 0], dirn[:, 1]
+    normal = np.stack([-dy, dx], axis=1)
+    dm = mid[j] - mid[i]
+    sep = np.abs(dm[:, 0] * -dy + dm[:, 1] * dx)
     # Overlap of the projections on the common direction.
-    ai = np.sort(np.stack([(p1[i] * dirn).sum(1), (p2[i] * dirn).sum(1)], 1), 1)
-    aj = np.sort(np.stack([(p1[j] * dirn).sum(1), (p2[j] * dirn).sum(1)], 1), 1)
-    overlap = np.minimum(ai[:, 1], aj[:, 1]) - np.maximum(ai[:, 0], aj[:, 0])
+    def along(p: F64, k: NDArray[np.int64]) -> F64:
+        return np.asarray(p[k, 0] * dx + p[k, 1] * dy)
+
+    a1, a2, b1, b2 = along(p1, i), along(p2, i), along(p1, j), along(p2, j)
+    lo = np.maximum(np.minimum(a1, a2), np.minimum(b1, b2))
+    hi = np.minimum(np.maximum(a1, a2), np.maximum(b1, b2))
+    overlap = hi - lo
     shorter = np.minimum(length[i], length[j])
     ok = (sep >= 3.0) & (overlap >= 0.5 * shorter) & (sep <= 2.0 * np.maximum(length[i], length[j]))
     if not ok.any():
         return _no_parts()
     i, j, dirn, normal, sep, overlap = i[ok], j[ok], dirn[ok], normal[ok], sep[ok], overlap[ok]
-    ai, aj = ai[ok], aj[ok]
-    centre_along = (np.maximum(ai[:, 0], aj[:, 0]) + np.minimum(ai[:, 1], aj[:, 1])) / 2
+    centre_along = (lo[ok] + hi[ok]) / 2
     centre_across = ((mid[i] + mid[j]) / 2 * normal).sum(axis=1)
     xy = dirn * centre_along[:, None] + normal * centre_across[:, None]
     theta = np.mod(np.arctan2(dirn[:, 1], dirn[:, 0]), np.pi)

@@ -110,22 +110,22 @@ def fit_point_to_line(
     w = np.ones(len(src)) if weights is None else np.asarray(weights, dtype=np.float64)
     if len(src) < 4:
         return None
-    A = np.stack(
-        [
-            n[:, 0] * src[:, 0] + n[:, 1] * src[:, 1],
-            -n[:, 0] * src[:, 1] + n[:, 1] * src[:, 0],
-            n[:, 0],
-            n[:, 1],
-        ],
-        axis=1,
-    )
-    b = (n * dst).sum(axis=1)
+    nx, ny = n[:, 0], n[:, 1]
+    sx, sy = src[:, 0], src[:, 1]
     sw = np.sqrt(w)
-    AtA = (A * sw[:, None]).T @ (A * sw[:, None])
+    # Rows of the design matrix already weighted by √w.
+    Aw = np.empty((len(src), 4))
+    Aw[:, 0] = nx * sx + ny * sy
+    Aw[:, 1] = -nx * sy + ny * sx
+    Aw[:, 2] = nx
+    Aw[:, 3] = ny
+    Aw *= sw[:, None]
+    b = nx * dst[:, 0] + ny * dst[:, 1]
+    AtA = Aw.T @ Aw
     # Degenerate when the edges constrain fewer than 4 directions (one line).
     if abs(np.linalg.det(AtA)) < 1e-9 * max(float(np.trace(AtA)), 1e-12) ** 4:
         return None
-    a, bb, tx, ty = np.linalg.solve(AtA, (A * sw[:, None]).T @ (b * sw))
+    a, bb, tx, ty = np.linalg.solve(AtA, Aw.T @ (b * sw))
     scale = float(np.hypot(a, bb))
     if scale <= 1e-6:
         return None
