@@ -21,6 +21,7 @@ give the same features.
 from __future__ import annotations
 
 import threading
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
@@ -272,6 +273,12 @@ def extract_features(
     ref = float(np.percentile(mag[::2, ::2], 98.0))
     if ref <= 1e-6:
         return _empty_features((h, w))
+    # LSD wants 8 bit: stretch between robust extremes so dim images keep edges.
+    lo_v, hi_v = np.percentile(smooth[::2, ::2], [1.0, 99.0])
+    grey8 = np.clip((smooth - lo_v) * (255.0 / max(hi_v - lo_v, 1e-6)), 0, 255).astype(np.uint8)
+    # LSD needs nothing of what follows (its segments are masked afterwards)
+    # and OpenCV releases the GIL: it runs on the other core meanwhile.
+    lines = _LSD_POOL.submit(_detect_lines, grey8)
 
     # Canny on the gradient normalised by the image's own gradient scale keeps
     # the edge map independent of exposure and bit depth.
@@ -301,10 +308,6 @@ def extract_features(
     edge_xy = np.stack([xs, ys], axis=1).astype(np.float32)
     edge_theta = tangent.astype(np.float32)
 
-    # LSD wants 8 bit: stretch between robust extremes so dim images keep edges.
-    lo_v, hi_v = np.percentile(smooth[::2, ::2], [1.0, 99.0])
-    grey8 = np.clip((smooth - lo_v) * (255.0 / max(hi_v - lo_v, 1e-6)), 0, 255).astype(np.uint8)
-    segments = _segments(grey8, config, segment_mask)
     bits = orientation_bits_map(edge_xy, edge_theta, (h, w), spread_px)
     if len(edge_xy):
         # Labels of DIST_LABEL_PIXEL number the zero pixels in raster order,
@@ -317,6 +320,7 @@ def extract_features(
         dist = np.full((h, w), np.inf, np.float32)
         nearest = np.full((h, w), -1, np.int32)
     arcs = _arcs(edges, edge_xy, edge_theta, nearest, dist, config)
+    segments = _segments(lines.result(), config, segment_mask)
     grouped = _concat_parts([_group(segments, config), arcs])
     return ImageFeatures(edge_xy, edge_theta, segments, grouped, bits, nearest, dist, (h, w))
 
@@ -355,12 +359,20 @@ def _texture_edges(edges: NDArray[np.uint8], gx: F32, gy: F32,
     theta = np.mod(np.arctan2(gy[ys, xs], gx[ys, xs]), np.pi)
     b = np.minimum((theta * (n_bins / np.pi)).astype(np.int64), n_bins - 1)
     side = 2 * config.texture_radius_px + 1
-    # Edge counts per orientation bin in each window: one 8-channel integer
-    # box filter (counts up to side² fit in uint16 for windows to 255 px).
-    planes = np.zeros((*edges.shape, n_bins), np.uint8)
-    planes[ys, xs, b] = 1
-    counts = cv2.boxFilter(planes, cv2.CV_16U, (side, side), normalize=False,
-                           borderType=cv2.BORDER_REFLECT)[ys, xs].astype(np.int64)
+    # Edge counts per orientation bin in each window by one integer box
+    # filter, several bins packed into each int32 channel: a count of at
+    # most side² never carries into the next bin's bit field.
+    field = int(side * side).bit_length()
+    per_channel = max(1, 31 // field)
+    n_channels = -(-n_bins // per_channel)
+    planes = np.zeros((*edges.shape, n_channels), np.int32)
+    planes[ys, xs, b // per_channel] = 1 << (field * (b % per_channel))
+    window_sums = cv2.boxFilter(planes, cv2.CV_32S, (side, side), normalize=False,
+                                borderType=cv2.BORDER_REFLECT).reshape(*edges.shape, n_channels)
+    packed: NDArray[np.int64] = np.asarray(window_sums[ys, xs], dtype=np.int64)
+    bin_of = np.arange(n_bins)
+    counts = (packed[:, bin_of // per_channel] >> (field * (bin_of % per_channel))) & (
+        (1 << field) - 1)
     total = counts.sum(axis=1)
     # Own orientation and its two neighbours (±22.5°) count as "same".
     rows = np.arange(len(ys))
@@ -466,15 +478,24 @@ def _empty_features(shape: tuple[int, int]) -> ImageFeatures:
 #: concurrent requests in a thread pool).
 _LSD_PER_THREAD = threading.local()
 
+#: Threads that run LSD beside the rest of the extraction (two: concurrent
+#: requests of the service need not queue behind one another's LSD).
+_LSD_POOL = ThreadPoolExecutor(max_workers=2, thread_name_prefix="viewloc-lsd")
 
-def _segments(grey8: NDArray[np.uint8], config: FeatureConfig,
-              mask: NDArray[np.bool_] | None) -> F32:
-    """Straight segments by LSD; (S, 4) float32 end points."""
+
+def _detect_lines(grey8: NDArray[np.uint8]) -> NDArray[np.float32] | None:
+    """Raw LSD output for an 8-bit image (None when it finds nothing)."""
     lsd = getattr(_LSD_PER_THREAD, "detector", None)
     if lsd is None:
         lsd = cv2.createLineSegmentDetector(cv2.LSD_REFINE_NONE)
         _LSD_PER_THREAD.detector = lsd
     lines = lsd.detect(grey8)[0]
+    return None if lines is None else np.asarray(lines, np.float32)
+
+
+def _segments(lines: NDArray[np.float32] | None, config: FeatureConfig,
+              mask: NDArray[np.bool_] | None) -> F32:
+    """Straight segments from LSD's output; (S, 4) float32 end points."""
     if lines is None:
         return np.zeros((0, 4), np.float32)
     seg = lines.reshape(-1, 4).astype(np.float32)

@@ -170,3 +170,44 @@ def test_banding_of_a_smooth_gradient_is_not_an_edge():
     x, y = feats.edge_xy[:, 0], feats.edge_xy[:, 1]
     on_square = (x >= 136) & (x <= 174) & (y >= 96) & (y <= 134)
     assert on_square.all()
+
+
+@pytest.mark.parametrize("radius", [3, 12, 40])
+def test_texture_test_counts_other_orientations_in_the_window(radius):
+    """The packed integer window counts against a plain count (reflected borders)."""
+    from viewloc_core.features import FeatureConfig, _texture_edges
+
+    rng = np.random.default_rng(radius)
+    edges = ((rng.random((90, 120)) < 0.25) * 255).astype(np.uint8)
+    gx = rng.normal(size=edges.shape).astype(np.float32)
+    gy = rng.normal(size=edges.shape).astype(np.float32)
+    config = FeatureConfig(texture_radius_px=radius, texture_other_density=0.156)
+    got = _texture_edges(edges, gx, gy, config)
+    theta = np.mod(np.arctan2(gy, gx), np.pi)
+    bins = np.minimum((theta * (8 / np.pi)).astype(int), 7)
+    on = np.pad(edges > 0, radius, mode="symmetric")
+    padded_bins = np.pad(bins, radius, mode="symmetric")
+    expected = np.zeros(edges.shape, bool)
+    side = 2 * radius + 1
+    for y, x in zip(*np.nonzero(edges), strict=True):
+        win_on = on[y: y + side, x: x + side]
+        diff = np.abs(padded_bins[y: y + side, x: x + side] - bins[y, x])
+        other = win_on & (np.minimum(diff, 8 - diff) > 1)
+        expected[y, x] = other.sum() > 0.156 * side * side
+    np.testing.assert_array_equal(got, expected)
+    assert 0 < expected.sum() < (edges > 0).sum()
+
+
+def test_spread_map_sets_each_bin_within_the_square_radius():
+    from viewloc_core.features import orientation_bits_map
+
+    rng = np.random.default_rng(4)
+    h, w = 30, 40
+    flat = rng.choice(h * w, 25, replace=False)
+    xy = np.stack([flat % w, flat // w], axis=1).astype(np.float32)
+    theta = rng.uniform(0, np.pi, 25).astype(np.float32)
+    bits = orientation_bits_map(xy, theta, (h, w), 2)
+    expected = np.zeros((h, w), np.uint16)
+    for (x, y), b in zip(xy.astype(int), orientation_bin(theta), strict=True):
+        expected[max(0, y - 2): y + 3, max(0, x - 2): x + 3] |= np.uint16(1 << int(b))
+    np.testing.assert_array_equal(bits, expected)
