@@ -536,8 +536,10 @@ def _extend_many(feats: ImageFeatures, sims: F64, pts: F64, theta: F64,
         sx, sy = pts[..., 0], pts[..., 1]
         A = np.stack([nx * sx + ny * sy, -nx * sy + ny * sx, nx, ny], axis=-1)
         rhs = nx * dst[..., 0] + ny * dst[..., 1]
-        AtA = np.einsum("hpi,hpj,hp->hij", A, A, wgt)
-        Atb = np.einsum("hpi,hp,hp->hi", A, rhs, wgt)
+        # Batched matrix products (a three-operand einsum is several times slower).
+        Aw = A * wgt[..., None]
+        AtA = np.matmul(Aw.transpose(0, 2, 1), A)
+        Atb = np.matmul(Aw.transpose(0, 2, 1), rhs[..., None])[..., 0]
         ok = use.sum(axis=1) >= 6
         AtA[~ok] = np.eye(4)
         det = np.linalg.det(AtA)
