@@ -288,6 +288,60 @@ def _score(feats: ImageFeatures, px: NDArray[np.float32], py: NDArray[np.float32
             llr / np.maximum(llr_all_found, 1e-9))
 
 
+def best_member(
+    model: ObjectModel, model_view: int, sim: F64, feats: ImageFeatures
+) -> tuple[int, F64]:
+    """Member training view of a model view that fits the image best, by coverage.
+
+    The same choice as composing the match with every member's similarity and
+    calling :func:`viewloc_core.align.coverage` on each (the first of equals
+    wins), in one batch.
+
+    Parameters
+    ----------
+    model : ObjectModel
+    model_view : int
+        The matched model view.
+    sim : (4,) float64
+        Model-view frame -> image similarity of the match.
+    feats : ImageFeatures
+        The image, with its spread orientation map.
+
+    Returns
+    -------
+    view : int
+        Training view index.
+    sim : (4,) float64
+        Its training-view frame -> image similarity.
+    """
+    tr = model.training
+    templates = view_templates(model)
+    members = np.flatnonzero(tr.model_view == model_view)
+    inner = tr.sim_to_model[members]
+    # sim ∘ inner, with the arithmetic of similarity.compose.
+    x, y, a, sc = (float(v) for v in sim)
+    c, si = sc * np.cos(a), sc * np.sin(a)
+    sims = np.stack([c * inner[:, 0] - si * inner[:, 1] + x, si * inner[:, 0] + c * inner[:, 1] + y,
+                     sim2.wrap_angle(a + inner[:, 2]), sc * inner[:, 3]], axis=1)
+    pts, valid = templates.pts[members], templates.valid[members]
+    # Samples mapped with the arithmetic of similarity.apply.
+    cm = (sims[:, 3] * np.cos(sims[:, 2]))[:, None]
+    sm = (sims[:, 3] * np.sin(sims[:, 2]))[:, None]
+    px, py = pts[..., 0], pts[..., 1]
+    u = np.rint(cm * px - sm * py + sims[:, 0:1]).astype(np.int64)
+    v = np.rint(sm * px + cm * py + sims[:, 1:2]).astype(np.int64)
+    h, w = feats.shape
+    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h) & valid
+    got = np.zeros(u.shape, np.uint16)
+    got[inside] = feats.orientation_bits[v[inside], u[inside]]
+    turn = np.floor(np.mod(sims[:, 2], np.pi) / np.pi * ORIENTATION_BINS + 0.5).astype(np.int64)
+    b = (templates.bins[members] + turn[:, None]) % ORIENTATION_BINS
+    hits = np.count_nonzero(got & _WANTED[b], axis=1)
+    cov = hits / np.maximum(valid.sum(axis=1), 1)
+    best = int(np.argmax(cov))
+    return int(members[best]), sims[best]
+
+
 def _distinct_seeds(seeds: F64) -> F64:
     """Drop seeds the coarse grid of an earlier seed already covers."""
     kept: list[F64] = []

@@ -140,3 +140,26 @@ def test_scores_match_a_sample_by_sample_count(renderer, bracket_mesh, bracket_m
     for a, b in zip(coarse, subset, strict=True):
         np.testing.assert_array_equal(a, b)
     assert frac[1] > 0.5
+
+
+def test_best_member_is_the_member_of_highest_coverage(renderer, bracket_mesh, bracket_model):
+    """The batched choice equals composing and covering member by member."""
+    from viewloc_core import similarity as sim2
+    from viewloc_core.align import coverage
+    from viewloc_core.features import orientation_bin
+    from viewloc_core.view_search import best_member
+
+    model = bracket_model
+    tr = model.training
+    image, sim_true, _ = _scene(renderer, bracket_mesh, model, 5, 35.0, clutter=2)
+    feats = extract_features(image)
+    rng = np.random.default_rng(8)
+    for model_view in range(len(model.model_views)):
+        members = np.flatnonzero(tr.model_view == model_view)
+        sim = sim_true + np.array([*rng.normal(0, 3, 2), rng.normal(0, 0.2), 0.0])
+        covs = [coverage(feats, sim2.compose(sim, tr.sim_to_model[t]),
+                         tr.edge_xy[t].astype(np.float64), orientation_bin(tr.edge_theta[t]))
+                for t in members]
+        t_best, sim_best = best_member(model, model_view, sim, feats)
+        assert t_best == members[int(np.argmax(covs))]
+        np.testing.assert_array_equal(sim_best, sim2.compose(sim, tr.sim_to_model[t_best]))
