@@ -33,7 +33,7 @@ from viewloc_core.camera import Camera
 from viewloc_core.contour_model import ContourModel
 from viewloc_core.detection import Detection, Similarity2D
 from viewloc_core.errors import InvalidInputError
-from viewloc_core.features import ImageFeatures, extract_features, orientation_bin, to_grey_float
+from viewloc_core.features import extract_features, orientation_bin, to_grey_float
 from viewloc_core.model import ObjectModel, cached_per_model
 from viewloc_core.pose import Pose
 from viewloc_core.pose_from_match import pose_from_similarity
@@ -45,7 +45,13 @@ from viewloc_core.refine import (
     refine_pose,
 )
 from viewloc_core.symmetry import canonical_pose
-from viewloc_core.view_search import ViewCandidate, chance_rates, search_views, view_templates
+from viewloc_core.view_search import (
+    ViewCandidate,
+    best_member,
+    chance_rates,
+    search_views,
+    view_templates,
+)
 
 #: Images larger than this (longest side, px) are searched on a pyramid level.
 #: Fine texture (cloth, cast surfaces, printed backgrounds) makes dense edges
@@ -127,23 +133,6 @@ def _contour_model(model: ObjectModel) -> ContourModel | None:
         return None
     arrays = model.contour
     return cached_per_model(_CONTOUR_CACHE, model, lambda _: ContourModel.from_arrays(arrays))
-
-
-def _member_view(
-    model: ObjectModel, match: Match2D, feats: ImageFeatures
-) -> tuple[int, NDArray[np.float64]]:
-    """Member training view of the matched model view that fits the image best
-    (by coverage): its index and the similarity training-view frame -> image."""
-    tr = model.training
-    members = np.flatnonzero(tr.model_view == match.model_view)
-    best = (-1.0, int(members[0]), match.sim)
-    for t in members:
-        sim_t = sim2.compose(match.sim, tr.sim_to_model[t])
-        pts = tr.edge_xy[t].astype(np.float64)
-        cov = coverage(feats, sim_t, pts, orientation_bin(tr.edge_theta[t]))
-        if cov > best[0]:
-            best = (cov, int(t), sim_t)
-    return best[1], best[2]
 
 
 def _refit_at_model_scale(
@@ -330,18 +319,19 @@ def localize(
 
     min_score = model.default_min_score if options.min_score is None else options.min_score
     contour = _contour_model(model) if options.refine else None
-    edges = prepare_edges(arr) if contour is not None and matches else None
     # Pass 1: per image location, the training views that explain it best.
     templates = view_templates(model)
     chance = chance_rates(feats)
     located = []
     for match in matches:
-        seeds = np.array([_member_view(model, m, feats)[1] for m in (match, *match.alternatives)])
+        seeds = np.array([best_member(model, m.model_view, m.sim, feats)[1]
+                          for m in (match, *match.alternatives)])
         located.append(_Located(match, search_views(feats, templates, seeds, chance)))
     located = [loc for loc in located if loc.candidates]
     located.sort(key=lambda loc: -loc.evidence)
     t4 = time.perf_counter()
     timing["views"] = (t4 - t3) * 1e3
+    edges = prepare_edges(arr) if contour is not None and located else None
     # Pass 2: final fit of the best locations only.
     detections: list[Detection] = []
     for loc in located[: options.max_detections + SPARE_LOCATIONS]:
