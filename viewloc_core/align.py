@@ -488,10 +488,10 @@ def _vote_hypotheses(views: NDArray[np.int64], sims: F64, vote: F64,
     return views[best], sims[best]
 
 
-def _coverage_many(feats: ImageFeatures, sims: F64, pts: F64, bins: NDArray[np.int64],
+def coverage_many(feats: ImageFeatures, sims: F64, pts: F64, bins: NDArray[np.int64],
                    valid: NDArray[np.bool_]) -> F64:
     """``coverage`` for H hypotheses at once; pts (H, P, 2), bins/valid (H, P)."""
-    uv = _apply_batch(sims, pts)
+    uv = sim2.apply_many(sims, pts)
     h, w = feats.shape
     u = np.rint(uv[..., 0]).astype(np.int64)
     v = np.rint(uv[..., 1]).astype(np.int64)
@@ -505,14 +505,6 @@ def _coverage_many(feats: ImageFeatures, sims: F64, pts: F64, bins: NDArray[np.i
     return hit.sum(axis=1) / np.maximum(valid.sum(axis=1), 1)
 
 
-def _apply_batch(sims: F64, pts: F64) -> F64:
-    """Map (H, P, 2) points, each row by its own similarity of (H, 4)."""
-    c = (sims[:, 3] * np.cos(sims[:, 2]))[:, None]
-    s = (sims[:, 3] * np.sin(sims[:, 2]))[:, None]
-    px, py = pts[..., 0], pts[..., 1]
-    return np.stack([c * px - s * py + sims[:, 0:1], s * px + c * py + sims[:, 1:2]], axis=-1)
-
-
 def _extend_many(feats: ImageFeatures, sims: F64, pts: F64, theta: F64,
                  valid: NDArray[np.bool_], radii: tuple[float, ...], tol_deg: float) -> F64:
     """``extend`` for H hypotheses at once (batched normal equations)."""
@@ -522,7 +514,7 @@ def _extend_many(feats: ImageFeatures, sims: F64, pts: F64, theta: F64,
     tol = np.radians(tol_deg)
     hh, pp = theta.shape
     for radius in radii:
-        uv = _apply_batch(current, pts)
+        uv = sim2.apply_many(current, pts)
         found, nn = feats.nearest_edges(uv.reshape(-1, 2), radius)
         found = found.reshape(hh, pp) & valid
         nn = nn.reshape(hh, pp)
@@ -680,7 +672,7 @@ def align(
     theta_c = np.asarray((bins + 0.5) * (np.pi / 16), dtype=np.float64)
     fitted_all = _extend_many(feats, hyp_sims, pts, theta_c, valid, config.coarse_radii_px,
                               config.orientation_tol_deg)
-    cov_all = _coverage_many(feats, fitted_all, pts, bins, valid)
+    cov_all = coverage_many(feats, fitted_all, pts, bins, valid)
     order = np.argsort(-cov_all)[: config.max_scored]
     scored = []
     for n in order:

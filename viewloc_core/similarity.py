@@ -37,12 +37,13 @@ def apply(sim: NDArray[np.floating], pts: NDArray[np.floating]) -> Array:
 
 
 def apply_many(sims: NDArray[np.floating], pts: NDArray[np.floating]) -> Array:
-    """Map one point set by many similarities.
+    """Map points by many similarities.
 
     Parameters
     ----------
     sims : (H, 4) array
-    pts : (P, 2) array
+    pts : (P, 2) or (H, P, 2) array
+        One point set for all similarities, or one per similarity.
 
     Returns
     -------
@@ -51,18 +52,25 @@ def apply_many(sims: NDArray[np.floating], pts: NDArray[np.floating]) -> Array:
     sims = np.asarray(sims, dtype=np.float64)
     c = (sims[:, 3] * np.cos(sims[:, 2]))[:, None]
     s = (sims[:, 3] * np.sin(sims[:, 2]))[:, None]
-    px, py = pts[None, :, 0], pts[None, :, 1]
+    px, py = pts[..., 0], pts[..., 1]
     return np.stack(
-        [c * px - s * py + sims[:, 0:1], s * px + c * py + sims[:, 1:2]], axis=2
+        [c * px - s * py + sims[:, 0:1], s * px + c * py + sims[:, 1:2]], axis=-1
     )
 
 
 def compose(outer: NDArray[np.floating], inner: NDArray[np.floating]) -> Array:
     """``outer ∘ inner``: apply ``inner`` first. Both (4,) arrays."""
-    xo, yo, ao, so = (float(v) for v in outer)
-    xi, yi, ai, si = (float(v) for v in inner)
-    t = apply(outer, np.array([[xi, yi]]))[0]
-    return np.array([t[0], t[1], wrap_angle(ao + ai), so * si])
+    return compose_many(outer, np.asarray(inner, dtype=np.float64)[None])[0]
+
+
+def compose_many(outer: NDArray[np.floating], inner: NDArray[np.floating]) -> Array:
+    """``outer ∘ inner[k]`` for each row of ``inner`` (H, 4); ``outer`` (4,). Returns (H, 4)."""
+    x, y, a, sc = (float(v) for v in outer)
+    inner = np.asarray(inner, dtype=np.float64)
+    c, si = sc * np.cos(a), sc * np.sin(a)
+    return np.stack([c * inner[:, 0] - si * inner[:, 1] + x,
+                     si * inner[:, 0] + c * inner[:, 1] + y,
+                     wrap_angle(a + inner[:, 2]), sc * inner[:, 3]], axis=1)
 
 
 def inverse(sim: NDArray[np.floating]) -> Array:

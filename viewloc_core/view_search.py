@@ -31,7 +31,7 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from viewloc_core import similarity as sim2
-from viewloc_core.align import _extend_many, _spread_subset
+from viewloc_core.align import _extend_many, _spread_subset, coverage_many
 from viewloc_core.features import ORIENTATION_BINS, ImageFeatures, orientation_bin, wanted_bits
 from viewloc_core.model import ObjectModel, cached_per_model
 
@@ -317,27 +317,9 @@ def best_member(
     tr = model.training
     templates = view_templates(model)
     members = np.flatnonzero(tr.model_view == model_view)
-    inner = tr.sim_to_model[members]
-    # sim ∘ inner, with the arithmetic of similarity.compose.
-    x, y, a, sc = (float(v) for v in sim)
-    c, si = sc * np.cos(a), sc * np.sin(a)
-    sims = np.stack([c * inner[:, 0] - si * inner[:, 1] + x, si * inner[:, 0] + c * inner[:, 1] + y,
-                     sim2.wrap_angle(a + inner[:, 2]), sc * inner[:, 3]], axis=1)
-    pts, valid = templates.pts[members], templates.valid[members]
-    # Samples mapped with the arithmetic of similarity.apply.
-    cm = (sims[:, 3] * np.cos(sims[:, 2]))[:, None]
-    sm = (sims[:, 3] * np.sin(sims[:, 2]))[:, None]
-    px, py = pts[..., 0], pts[..., 1]
-    u = np.rint(cm * px - sm * py + sims[:, 0:1]).astype(np.int64)
-    v = np.rint(sm * px + cm * py + sims[:, 1:2]).astype(np.int64)
-    h, w = feats.shape
-    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h) & valid
-    got = np.zeros(u.shape, np.uint16)
-    got[inside] = feats.orientation_bits[v[inside], u[inside]]
-    turn = np.floor(np.mod(sims[:, 2], np.pi) / np.pi * ORIENTATION_BINS + 0.5).astype(np.int64)
-    b = (templates.bins[members] + turn[:, None]) % ORIENTATION_BINS
-    hits = np.count_nonzero(got & _WANTED[b], axis=1)
-    cov = hits / np.maximum(valid.sum(axis=1), 1)
+    sims = sim2.compose_many(sim, tr.sim_to_model[members])
+    cov = coverage_many(feats, sims, templates.pts[members], templates.bins[members],
+                        templates.valid[members])
     best = int(np.argmax(cov))
     return int(members[best]), sims[best]
 

@@ -24,6 +24,17 @@ def l_bracket() -> trimesh.Trimesh:
     return trimesh.util.concatenate([plate, upright, rib])
 
 
+def ribbed_bracket() -> trimesh.Trimesh:
+    """A smaller asymmetric bracket (plate, wall at one end, thin rib), mm."""
+    base = trimesh.creation.box((100.0, 40.0, 8.0))
+    base.apply_translation([0.0, 0.0, 4.0])
+    wall = trimesh.creation.box((8.0, 40.0, 60.0))
+    wall.apply_translation([46.0, 0.0, 38.0])
+    rib = trimesh.creation.box((30.0, 5.0, 20.0))
+    rib.apply_translation([27.0, 12.0, 18.0])
+    return trimesh.util.concatenate([base, wall, rib])
+
+
 @pytest.fixture(scope="session")
 def bracket_mesh() -> trimesh.Trimesh:
     return l_bracket()

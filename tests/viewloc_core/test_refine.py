@@ -5,9 +5,9 @@ import math
 import cv2
 import numpy as np
 import pytest
-import trimesh
 from scipy.spatial.transform import Rotation
 
+from tests.viewloc_core.conftest import ribbed_bracket
 from viewloc_core.camera import Camera
 from viewloc_core.contour_model import build_contour_model
 from viewloc_core.errors import InvalidImageError, InvalidInputError
@@ -17,16 +17,6 @@ from viewloc_core.render import Renderer, prepare
 from viewloc_core.view_sphere import subdivided_sphere
 
 CAM = Camera(600.0, 600.0, 322.5, 237.5, 640, 480)
-
-
-def _l_bracket() -> trimesh.Trimesh:
-    base = trimesh.creation.box((100.0, 40.0, 8.0))
-    base.apply_translation([0.0, 0.0, 4.0])
-    wall = trimesh.creation.box((8.0, 40.0, 60.0))
-    wall.apply_translation([46.0, 0.0, 38.0])
-    rib = trimesh.creation.box((30.0, 5.0, 20.0))
-    rib.apply_translation([27.0, 12.0, 18.0])
-    return trimesh.util.concatenate([base, wall, rib])
 
 
 def _clutter(rng: np.random.Generator) -> np.ndarray:
@@ -43,7 +33,7 @@ def _clutter(rng: np.random.Generator) -> np.ndarray:
 @pytest.fixture(scope="module")
 def scene():
     renderer = Renderer()
-    mesh = _l_bracket()
+    mesh = ribbed_bracket()
     dirs, _, _ = subdivided_sphere(2)
     model = build_contour_model(mesh, dirs, renderer, 600.0, 600.0, (320, 320), 200)
     yield renderer, prepare(mesh), model

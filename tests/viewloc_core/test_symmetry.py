@@ -10,6 +10,7 @@ from hypothesis import strategies as st
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from tests.viewloc_core.conftest import ribbed_bracket
 from viewloc_core.errors import InvalidInputError
 from viewloc_core.pose import Pose, rotation_angle_deg
 from viewloc_core.symmetry import (
@@ -43,16 +44,6 @@ def _barbell() -> trimesh.Trimesh:
         disc.apply_translation([x, 0.0, 0.0])
         parts.append(disc)
     return trimesh.util.concatenate(parts)
-
-
-def _l_bracket() -> trimesh.Trimesh:
-    base = trimesh.creation.box((100.0, 40.0, 8.0))
-    base.apply_translation([0.0, 0.0, 4.0])
-    wall = trimesh.creation.box((8.0, 40.0, 60.0))
-    wall.apply_translation([46.0, 0.0, 38.0])
-    rib = trimesh.creation.box((30.0, 5.0, 20.0))
-    rib.apply_translation([27.0, 12.0, 18.0])
-    return trimesh.util.concatenate([base, wall, rib])
 
 
 def _moved(mesh: trimesh.Trimesh, R: np.ndarray, t: np.ndarray) -> trimesh.Trimesh:
@@ -104,7 +95,7 @@ def test_barbell_continuous_about_bar_plus_flip():
 
 
 def test_l_bracket_has_no_symmetry():
-    sym = detect_symmetries(_l_bracket())
+    sym = detect_symmetries(ribbed_bracket())
     assert sym.continuous_axis is None
     assert len(sym.discrete) == 1
 
@@ -127,7 +118,7 @@ def test_off_centre_hole_breaks_the_symmetry():
 quats = st.tuples(*(st.floats(-1, 1),) * 4).filter(lambda q: np.linalg.norm(q) > 0.1)
 shapes = st.sampled_from(["box", "cylinder", "barbell", "l_bracket"])
 EXPECT = {"box": (4, False), "cylinder": (2, True), "barbell": (2, True), "l_bracket": (1, False)}
-MAKERS = {"box": _box, "cylinder": _cylinder, "barbell": _barbell, "l_bracket": _l_bracket}
+MAKERS = {"box": _box, "cylinder": _cylinder, "barbell": _barbell, "l_bracket": ribbed_bracket}
 
 
 @settings(max_examples=6, deadline=None)
