@@ -43,6 +43,7 @@ def score_target(
         "latency_ms": round(latency_ms, 3),
         "detected": bool(dets),
         "image_diameter_px": vm.image_diameter_px(cam, target.pose, obj.diameter_mm),
+        "conditions": dict(target.conditions),
     }
     if not dets:
         rec.update(recognized_2d=False, recognized_6d=False)
@@ -109,6 +110,32 @@ def summarise(records: list[Record], objects: dict[str, BenchObject], width: int
     return out
 
 
+def summarise_conditions(records: list[Record], objects: dict[str, BenchObject],
+                         width: int) -> dict[str, list[Record]]:
+    """The summary of the targets under each value of each scene condition.
+
+    Returns
+    -------
+    dict
+        Condition name (``background``, ``material``, ...) -> one summary per
+        value, with a ``value`` field, in the order of the values' names.
+        Where a set fails (chequered floors, metal, fog) is the first thing
+        to know when improving the method.
+    """
+    values: dict[str, set[str]] = {}
+    for r in records:
+        for key, value in r.get("conditions", {}).items():
+            values.setdefault(key, set()).add(value)
+    return {
+        key: [
+            {"value": v, **summarise([r for r in records if r.get("conditions", {}).get(key) == v],
+                                     objects, width)}
+            for v in sorted(vs)
+        ]
+        for key, vs in values.items()
+    }
+
+
 def _group_key(group: str) -> tuple[int, str]:
     if group.startswith("N="):
         return (int(group[2:]), group)
@@ -127,7 +154,8 @@ def evaluate_set(
     -------
     dict
         ``objects`` (learning figures), ``groups`` (per object and group),
-        ``overall``, ``per_object``, ``negatives`` and ``records``.
+        ``overall``, ``per_object``, ``by_condition`` (see
+        :func:`summarise_conditions`), ``negatives`` and ``records``.
     """
     width = bench.images[0].camera.width if bench.images else 640
     records: list[Record] = []
@@ -205,6 +233,7 @@ def evaluate_set(
         "objects": learned_info,
         "groups": groups,
         "per_object": per_object,
+        "by_condition": summarise_conditions(records, bench.objects, width),
         "overall": overall,
         "negatives": neg,
         "records": records,
@@ -269,6 +298,12 @@ def format_table(name: str, bench: BenchSet, result: Record | None, header: str)
         f"false positives: {neg['false_positives']} in {neg['images_with_false_positive']}"
         f"/{neg['images']} images without the object"
     )
+    for key, rows in result.get("by_condition", {}).items():
+        lines.append(
+            f"rec2D by {key}: "
+            + ", ".join(f"{r['value']} {_fmt(r.get('recognition_2d'), '.2f')} ({r['targets']})"
+                        for r in rows)
+        )
     for obj_name, info in result["objects"].items():
         lines.append(
             f"learned {obj_name}: {info['learn_s']:.1f} s, training views {info['training_views']},"

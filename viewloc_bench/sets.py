@@ -148,6 +148,7 @@ class Target:
     group: str
     n_clutter: int | None = None
     visible_fraction: float | None = None
+    conditions: dict[str, str] = field(default_factory=dict)
 
 
 @dataclass(frozen=True, slots=True)
@@ -359,6 +360,15 @@ def load_object(
     )
 
 
+#: Scene conditions of a generated image that the report breaks results down by.
+CONDITION_KEYS = ("background", "material", "fog", "lights")
+
+
+def _conditions(entry: dict[str, Any]) -> dict[str, str]:
+    """The scene conditions recorded for one image of ``gt.json`` (older sets lack some)."""
+    return {k: str(entry[k]) for k in CONDITION_KEYS if entry.get(k) is not None}
+
+
 def load_generated(folder: Path) -> BenchSet:
     """Load a generated set from its folder."""
     folder = Path(folder)
@@ -380,7 +390,8 @@ def load_generated(folder: Path) -> BenchSet:
         if e["present"]:
             pose = Pose(orthonormalize(np.asarray(e["R"])), np.asarray(e["t_mm"]))
             target = Target(
-                e["object"], pose, f"N={e['n_clutter']}", e["n_clutter"], e["visible_fraction"]
+                e["object"], pose, f"N={e['n_clutter']}", e["n_clutter"], e["visible_fraction"],
+                _conditions(e),
             )
         else:
             target = Target(e["object"], None, "negative", e["n_clutter"])

@@ -90,6 +90,30 @@ def test_oracle_run_table_and_json(tiny_paper_set: Path, tmp_path: Path) -> None
     assert (tmp_path / "fig2.png").read_bytes()[:4] == b"\x89PNG"
 
 
+def test_results_broken_down_by_scene_condition(tiny_paper_set: Path) -> None:
+    bench = sets.load_generated(tiny_paper_set)
+    present = [im for im in bench.images if im.targets[0].pose is not None]
+    missed = present[0]
+    res = runner.evaluate_set(bench, OracleBackend(bench, missed.path.name, fp=False),
+                              log=lambda s: None)
+    gt = {e["file"]: e for e in json.loads((tiny_paper_set / "gt.json").read_text())["images"]}
+    by = res["by_condition"]
+    assert set(by) == set(sets.CONDITION_KEYS)
+    for key, rows in by.items():
+        # Every target is counted once under its own value of each condition.
+        assert sum(r["targets"] for r in rows) == len(present)
+        expected = {str(gt[im.path.name][key]) for im in present}
+        assert [r["value"] for r in rows] == sorted(expected)
+        miss_value = str(gt[missed.path.name][key])
+        for r in rows:
+            same = [im for im in present if str(gt[im.path.name][key]) == r["value"]]
+            hits = sum(1 for im in same if im is not missed)
+            assert r["recognition_2d"] == pytest.approx(hits / len(same), abs=1e-3)
+            assert (r["value"] == miss_value) == (r["recognition_2d"] < 1.0)
+    table = runner.format_table("paper", bench, res, "oracle")
+    assert "rec2D by background: " in table
+
+
 def test_cli_without_a_service_prints_the_table_and_exits_0(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
