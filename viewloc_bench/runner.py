@@ -136,6 +136,18 @@ def summarise_conditions(records: list[Record], objects: dict[str, BenchObject],
     }
 
 
+def _false_positives_by(negatives: list[Record], key: str) -> dict[str, list[int]]:
+    """Condition value -> [images with a false positive, images] among the negatives."""
+    out: dict[str, list[int]] = {}
+    for r in negatives:
+        value = r.get("conditions", {}).get(key)
+        if value is not None:
+            counts = out.setdefault(value, [0, 0])
+            counts[0] += int(r["detections"] > 0)
+            counts[1] += 1
+    return dict(sorted(out.items()))
+
+
 def _group_key(group: str) -> tuple[int, str]:
     if group.startswith("N="):
         return (int(group[2:]), group)
@@ -201,6 +213,7 @@ def evaluate_set(
                             "detections": len(dets),
                             "top_score": max((d.score for d in dets), default=None),
                             "latency_ms": round(latency_ms, 3),
+                            "conditions": dict(t.conditions),
                         }
                     )
                 else:
@@ -228,6 +241,7 @@ def evaluate_set(
         "images": len(negatives),
         "images_with_false_positive": sum(1 for r in negatives if r["detections"] > 0),
         "false_positives": sum(r["detections"] for r in negatives),
+        "by_background": _false_positives_by(negatives, "background"),
     }
     return {
         "objects": learned_info,
@@ -303,6 +317,11 @@ def format_table(name: str, bench: BenchSet, result: Record | None, header: str)
             f"rec2D by {key}: "
             + ", ".join(f"{r['value']} {_fmt(r.get('recognition_2d'), '.2f')} ({r['targets']})"
                         for r in rows)
+        )
+    if neg.get("by_background"):
+        lines.append(
+            "images with a false positive by background: "
+            + ", ".join(f"{v} {k}/{n}" for v, (k, n) in neg["by_background"].items())
         )
     for obj_name, info in result["objects"].items():
         lines.append(

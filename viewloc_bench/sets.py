@@ -394,6 +394,7 @@ def load_generated(folder: Path) -> BenchSet:
                 _conditions(e),
             )
         else:
-            target = Target(e["object"], None, "negative", e["n_clutter"])
+            target = Target(e["object"], None, "negative", e["n_clutter"],
+                            conditions=_conditions(e))
         images.append(BenchImage(folder / e["file"], camera, (target,)))
     return BenchSet(gt["name"], folder, objects, images, gt["generation_s"], gt)

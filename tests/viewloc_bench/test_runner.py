@@ -76,7 +76,10 @@ def test_oracle_run_table_and_json(tiny_paper_set: Path, tmp_path: Path) -> None
     assert o["ar_mssd"] <= 0.6667 and o["ar_mspd"] <= 0.6667
     assert o["ar_mssd"] > 0.6 and o["adds_recall"] == pytest.approx(2 / 3, abs=1e-3)
     assert o["worst_group_recognition_2d"] == 0.0
-    assert res["negatives"] == {"images": 1, "images_with_false_positive": 1, "false_positives": 1}
+    gt_images = json.loads((tiny_paper_set / "gt.json").read_text())["images"]
+    neg_bg = next(str(e["background"]) for e in gt_images if not e["present"])
+    assert res["negatives"] == {"images": 1, "images_with_false_positive": 1, "false_positives": 1,
+                                "by_background": {neg_bg: [1, 1]}}
     assert res["objects"]["barbell"]["model_views"] == 18
     table = runner.format_table("paper", bench, res, "oracle")
     assert "N=9" in table and "overall" in table and "false positives: 1 in 1/1" in table
@@ -112,6 +115,9 @@ def test_results_broken_down_by_scene_condition(tiny_paper_set: Path) -> None:
             assert (r["value"] == miss_value) == (r["recognition_2d"] < 1.0)
     table = runner.format_table("paper", bench, res, "oracle")
     assert "rec2D by background: " in table
+    neg_bg = next(str(e["background"]) for e in gt.values() if not e["present"])
+    assert res["negatives"]["by_background"] == {neg_bg: [0, 1]}
+    assert f"false positive by background: {neg_bg} 0/1" in table
 
 
 def test_cli_without_a_service_prints_the_table_and_exits_0(
