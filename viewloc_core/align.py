@@ -34,6 +34,7 @@ from viewloc_core.features import (
     KIND_PARALLEL,
     ImageFeatures,
     orientation_bin,
+    orientation_turn,
     wanted_bits,
 )
 from viewloc_core.model import ModelView, ObjectModel
@@ -182,7 +183,7 @@ def build_index(model: ObjectModel, coarse_points: int = 48) -> ModelIndex:
         exy = v.edge_xy.astype(np.float64)
         eth = v.edge_theta.astype(np.float64)
         fine.append((exy, eth))
-        pick = _spread_subset(exy, coarse_points, rng)
+        pick = spread_subset(exy, coarse_points, rng)
         coarse_pts[i, : len(pick)] = exy[pick]
         coarse_bins[i, : len(pick)] = orientation_bin(eth[pick])
         coarse_valid[i, : len(pick)] = True
@@ -193,7 +194,7 @@ def build_index(model: ObjectModel, coarse_points: int = 48) -> ModelIndex:
     )
 
 
-def _spread_subset(pts: F64, n: int, rng: np.random.Generator) -> NDArray[np.int64]:
+def spread_subset(pts: F64, n: int, rng: np.random.Generator) -> NDArray[np.int64]:
     """Indices of up to ``n`` points spread over the set (farthest-point sampling)."""
     if len(pts) <= n:
         return np.arange(len(pts))
@@ -306,8 +307,7 @@ def coverage(
     u = np.rint(uv[:, 0]).astype(np.int64)
     v = np.rint(uv[:, 1]).astype(np.int64)
     inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
-    shift = int(np.floor(np.mod(sim[2], np.pi) / np.pi * 16 + 0.5))
-    b = (bins + shift) % 16
+    b = (bins + int(orientation_turn(sim[2]))) % 16
     # Accept the bin and its two neighbours (±1 bin = ±11.25°).
     want = wanted_bits(b)
     got = np.zeros(len(pts), np.uint16)
@@ -496,8 +496,7 @@ def coverage_many(feats: ImageFeatures, sims: F64, pts: F64, bins: NDArray[np.in
     u = np.rint(uv[..., 0]).astype(np.int64)
     v = np.rint(uv[..., 1]).astype(np.int64)
     inside = (u >= 0) & (u < w) & (v >= 0) & (v < h) & valid
-    shift = np.floor(np.mod(sims[:, 2], np.pi) / np.pi * 16 + 0.5).astype(np.int64)
-    b = (bins + shift[:, None]) % 16
+    b = (bins + orientation_turn(sims[:, 2])[:, None]) % 16
     want = wanted_bits(b)
     got = np.zeros(u.shape, np.int64)
     got[inside] = feats.orientation_bits[v[inside], u[inside]]
@@ -505,7 +504,7 @@ def coverage_many(feats: ImageFeatures, sims: F64, pts: F64, bins: NDArray[np.in
     return hit.sum(axis=1) / np.maximum(valid.sum(axis=1), 1)
 
 
-def _extend_many(feats: ImageFeatures, sims: F64, pts: F64, theta: F64,
+def extend_many(feats: ImageFeatures, sims: F64, pts: F64, theta: F64,
                  valid: NDArray[np.bool_], radii: tuple[float, ...], tol_deg: float) -> F64:
     """``extend`` for H hypotheses at once (batched normal equations)."""
     if len(feats.edge_xy) == 0:
@@ -670,7 +669,7 @@ def align(
     bins = index.coarse_bins[hyp_views]
     valid = index.coarse_valid[hyp_views]
     theta_c = np.asarray((bins + 0.5) * (np.pi / 16), dtype=np.float64)
-    fitted_all = _extend_many(feats, hyp_sims, pts, theta_c, valid, config.coarse_radii_px,
+    fitted_all = extend_many(feats, hyp_sims, pts, theta_c, valid, config.coarse_radii_px,
                               config.orientation_tol_deg)
     cov_all = coverage_many(feats, fitted_all, pts, bins, valid)
     order = np.argsort(-cov_all)[: config.max_scored]

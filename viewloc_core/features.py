@@ -410,6 +410,16 @@ def orientation_bin(theta: NDArray[np.floating]) -> NDArray[np.int64]:
     return np.minimum((t / np.pi * ORIENTATION_BINS).astype(np.int64), ORIENTATION_BINS - 1)
 
 
+def orientation_turn(angle_rad: NDArray[np.floating] | float) -> NDArray[np.int64]:
+    """Orientation bins an in-plane rotation moves edges by, rounded to the nearest.
+
+    In 0..ORIENTATION_BINS (a rotation of nearly π turns by all of them, the
+    same as none); add to a bin modulo ORIENTATION_BINS.
+    """
+    turn = np.mod(np.asarray(angle_rad, dtype=np.float64), np.pi) / np.pi * ORIENTATION_BINS
+    return np.floor(turn + 0.5).astype(np.int64)
+
+
 def wanted_bits(bins: NDArray[np.integer]) -> NDArray[np.int64]:
     """Bits of orientation bins and of their two neighbours (±11.25°): what a
     sample of bin ``b`` accepts in the spread orientation map."""

@@ -30,11 +30,11 @@ from viewloc_core import similarity as sim2
 from viewloc_core.align import (
     AlignConfig,
     ModelIndex,
-    _spread_subset,
     align,
     build_index,
     coverage,
     extend,
+    spread_subset,
 )
 from viewloc_core.camera import Camera
 from viewloc_core.errors import Cancelled, InvalidInputError
@@ -266,7 +266,7 @@ def _sample_from_image(
     feats = extract_features(image, FeatureConfig(), mask=mask)
     g = feats.grouped
     offset = np.array([centre, centre])
-    pick = _spread_subset(feats.edge_xy.astype(np.float64), config.edge_samples, rng)
+    pick = spread_subset(feats.edge_xy.astype(np.float64), config.edge_samples, rng)
     return _ViewSample(
         feats,
         g.kind,

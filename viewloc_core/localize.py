@@ -178,13 +178,42 @@ class _Located:
 
     @property
     def evidence(self) -> float:
-        """Log-likelihood ratio of the best view (ranks locations)."""
-        return self.candidates[0].log_likelihood_ratio if self.candidates else -np.inf
+        """Log-likelihood ratio of the best view (ranks locations; candidates not empty)."""
+        return self.candidates[0].log_likelihood_ratio
 
 
-def _fit_rank(result: RefinementResult | None) -> float:
+def _fit_rank(result: RefinementResult) -> float:
     """Ranking key of a refinement: share of the contour that found its edge."""
-    return -1.0 if result is None else float(result.inlier_fraction)
+    return float(result.inlier_fraction)
+
+
+def _refit_from_other_starts(
+    model: ObjectModel, loc: _Located, factor: float, camera: Camera, edges: EdgePyramid,
+    contour: ContourModel, t_view: int, similarity: Similarity2D, result: RefinementResult,
+) -> tuple[RefinementResult, int, Similarity2D]:
+    """A poor first refinement tried again from other starts; the better fit and its start.
+
+    The refinement's capture range in depth is a few %, less than the error
+    of a depth from the 2D scale: other depths, then the runners-up of the
+    view search, are the other starts. Each gets a short coarse fit; the best
+    one the full fit, which replaces ``result`` when it confirms more contour.
+    """
+    starts = [(t_view, Similarity2D(similarity.x, similarity.y, similarity.angle_deg,
+                                    similarity.scale * f)) for f in DEPTH_STARTS]
+    starts += [(c.view, _to_full_resolution(c.sim, factor)) for c in loc.candidates[1:]]
+    best_start: tuple[float, int, Similarity2D, Pose] | None = None
+    for t_c, sim_c in starts:
+        quick = refine_pose(edges, camera, _pose_centred(model, t_c, sim_c, camera),
+                            contour, QUICK_REFINE)
+        if best_start is None or _fit_rank(quick) > best_start[0]:
+            best_start = (_fit_rank(quick), t_c, sim_c, quick.pose)
+        if _fit_rank(quick) >= GOOD_FIT_FRACTION:
+            break
+    if best_start is not None:
+        other = refine_pose(edges, camera, best_start[3], contour, FINAL_REFINE)
+        if _fit_rank(other) > _fit_rank(result):
+            return other, best_start[1], best_start[2]
+    return result, t_view, similarity
 
 
 def _final_detection(
@@ -209,25 +238,8 @@ def _final_detection(
     if contour is not None and edges is not None:
         result = refine_pose(edges, camera, pose_centred, contour, FINAL_REFINE)
         if _fit_rank(result) < GOOD_FIT_FRACTION:
-            # The refinement's capture range in depth is a few %, less than
-            # the error of a depth from the 2D scale: other depths, then the
-            # runners-up of the view search, as other starts.
-            starts = [(t_view, Similarity2D(similarity.x, similarity.y, similarity.angle_deg,
-                                            similarity.scale * f)) for f in DEPTH_STARTS]
-            starts += [(c.view, _to_full_resolution(c.sim, factor)) for c in loc.candidates[1:]]
-            # Each start gets a short coarse fit; the best one the full fit.
-            best_start: tuple[float, int, Similarity2D, Pose] | None = None
-            for t_c, sim_c in starts:
-                quick = refine_pose(edges, camera, _pose_centred(model, t_c, sim_c, camera),
-                                    contour, QUICK_REFINE)
-                if best_start is None or _fit_rank(quick) > best_start[0]:
-                    best_start = (_fit_rank(quick), t_c, sim_c, quick.pose)
-                if _fit_rank(quick) >= GOOD_FIT_FRACTION:
-                    break
-            if best_start is not None:
-                other = refine_pose(edges, camera, best_start[3], contour, FINAL_REFINE)
-                if _fit_rank(other) > _fit_rank(result):
-                    result, t_view, similarity = other, best_start[1], best_start[2]
+            result, t_view, similarity = _refit_from_other_starts(
+                model, loc, factor, camera, edges, contour, t_view, similarity, result)
             pose_centred = _pose_centred(model, t_view, similarity, camera)
         moved = result.pose.t_m2c - pose_centred.t_m2c
         # The depth from the 2D scale is uncertain by several %, the image
@@ -331,7 +343,8 @@ def localize(
     located.sort(key=lambda loc: -loc.evidence)
     t4 = time.perf_counter()
     timing["views"] = (t4 - t3) * 1e3
-    edges = prepare_edges(arr) if contour is not None and located else None
+    # Only the levels the refinement uses (the same for its final and quick fits).
+    edges = prepare_edges(arr, FINAL_REFINE.levels) if contour is not None and located else None
     # Pass 2: final fit of the best locations only.
     detections: list[Detection] = []
     for loc in located[: options.max_detections + SPARE_LOCATIONS]:

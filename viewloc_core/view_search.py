@@ -31,8 +31,14 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from viewloc_core import similarity as sim2
-from viewloc_core.align import _extend_many, _spread_subset, coverage_many
-from viewloc_core.features import ORIENTATION_BINS, ImageFeatures, orientation_bin, wanted_bits
+from viewloc_core.align import coverage_many, extend_many, spread_subset
+from viewloc_core.features import (
+    ORIENTATION_BINS,
+    ImageFeatures,
+    orientation_bin,
+    orientation_turn,
+    wanted_bits,
+)
 from viewloc_core.model import ObjectModel, cached_per_model
 
 F64 = NDArray[np.float64]
@@ -128,7 +134,7 @@ def build_templates(model: ObjectModel) -> ViewTemplates:
         pts[t, :n] = xy
         theta[t, :n] = tr.edge_theta[t]
         valid[t, :n] = True
-        pick = _spread_subset(xy, COARSE_POINTS, rng)
+        pick = spread_subset(xy, COARSE_POINTS, rng)
         coarse[t] = np.resize(pick, COARSE_POINTS)
         if n >= 2:
             # Samples are spread evenly along the edges, so their spacing is
@@ -264,7 +270,7 @@ def _score(feats: ImageFeatures, px: NDArray[np.float32], py: NDArray[np.float32
     flat[~inside] = 0
     got = feats.orientation_bits.ravel()[flat]
     # The samples' orientation bins turn with the in-plane angle.
-    turn = np.floor(np.mod(sims[:, 2], np.pi) / np.pi * ORIENTATION_BINS + 0.5).astype(np.uint8)
+    turn = orientation_turn(sims[:, 2]).astype(np.uint8)
     b = bins + turn[:, None]
     b &= ORIENTATION_BINS - 1
     hit = (got & _WANTED[b]) != 0
@@ -397,7 +403,7 @@ def search_views(
     # The best few distinct views go on to the least-squares fit.
     pick = _best_distinct(views, llr, FITTED_CANDIDATES)
     fit_views = views[pick]
-    fitted = _extend_many(feats, sims[pick], templates.pts[fit_views],
+    fitted = extend_many(feats, sims[pick], templates.pts[fit_views],
                           templates.theta[fit_views], templates.valid[fit_views],
                           FIT_RADII_PX, 22.5)
     after = score_views(feats, templates, fit_views, fitted, chance)
