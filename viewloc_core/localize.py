@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import time
 import weakref
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import cv2
@@ -112,6 +113,11 @@ class LocalizationResult:
 
     detections: list[Detection]
     timing_ms: dict[str, float] = field(default_factory=dict)
+
+
+#: Threads that build the refinement's edge pyramid while the alignment runs
+#: (two, as features' LSD pool: concurrent requests need not queue).
+_EDGE_POOL = ThreadPoolExecutor(max_workers=2, thread_name_prefix="viewloc-edges")
 
 
 _INDEX_CACHE: weakref.WeakKeyDictionary[ObjectModel, ModelIndex] = weakref.WeakKeyDictionary()
@@ -324,13 +330,20 @@ def localize(
     feats = extract_features(level)
     t2 = time.perf_counter()
     timing["features"] = (t2 - t1) * 1e3
+    contour = _contour_model(model) if options.refine else None
+    # The refinement's edge pyramid needs nothing but the image, and OpenCV
+    # releases the GIL: it is built on the other core while alignment and
+    # view search run (only the levels the refinement uses, the same for
+    # its final and quick fits).
+    edges_future: Future[EdgePyramid] | None = None
+    if contour is not None:
+        edges_future = _EDGE_POOL.submit(prepare_edges, arr, FINAL_REFINE.levels)
     config = AlignConfig()
     matches = align(model, index, feats, config, max_matches=2 * options.max_detections + 1)
     t3 = time.perf_counter()
     timing["align"] = (t3 - t2) * 1e3
 
     min_score = model.default_min_score if options.min_score is None else options.min_score
-    contour = _contour_model(model) if options.refine else None
     # Pass 1: per image location, the training views that explain it best.
     templates = view_templates(model)
     chance = chance_rates(feats)
@@ -343,8 +356,7 @@ def localize(
     located.sort(key=lambda loc: -loc.evidence)
     t4 = time.perf_counter()
     timing["views"] = (t4 - t3) * 1e3
-    # Only the levels the refinement uses (the same for its final and quick fits).
-    edges = prepare_edges(arr, FINAL_REFINE.levels) if contour is not None and located else None
+    edges = edges_future.result() if edges_future is not None else None
     # Pass 2: final fit of the best locations only.
     detections: list[Detection] = []
     for loc in located[: options.max_detections + SPARE_LOCATIONS]:
