@@ -20,6 +20,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 import cv2
@@ -548,8 +549,7 @@ def log_probability(view_data: ModelView, feats: ImageFeatures, sim: F64) -> tup
     """g(E, T) of a hypothesis, pairing model features to image features under T.
 
     Each model feature pairs with the image feature of its kind that adds the
-    most to g (if that beats leaving it unmatched); all pairings are evaluated
-    at once as a (model features x image features) table.
+    most to g (if that beats leaving it unmatched).
 
     Returns
     -------
@@ -559,20 +559,52 @@ def log_probability(view_data: ModelView, feats: ImageFeatures, sim: F64) -> tup
         same for every hypothesis and left out).
     n_pairs : int
     """
+    g, n_pairs = log_probability_many([view_data], feats, np.asarray(sim, np.float64)[None])
+    return float(g[0]), int(n_pairs[0])
+
+
+def log_probability_many(views: Sequence[ModelView], feats: ImageFeatures, sims: F64
+                         ) -> tuple[F64, NDArray[np.int64]]:
+    """:func:`log_probability` of H hypotheses at once.
+
+    The model features of all hypotheses are stacked, each with its own
+    similarity, and paired with the image features as one (model features x
+    image features) table per kind, so the cost is a few array operations
+    whatever H.
+
+    Parameters
+    ----------
+    views : sequence of H ModelView
+        The model view of each hypothesis.
+    feats : ImageFeatures
+    sims : (H, 4) array
+        Model view -> image similarity of each hypothesis.
+
+    Returns
+    -------
+    g : (H,) float64
+    n_pairs : (H,) int64
+    """
     g = feats.grouped
+    n_hyp = len(views)
     area = float(feats.shape[0] * feats.shape[1])
-    p = np.minimum(view_data.presence.astype(np.float64), 0.999)
+    hyp = np.repeat(np.arange(n_hyp), [len(v.kind) for v in views])
+    p = np.minimum(np.concatenate([v.presence for v in views]).astype(np.float64), 0.999)
     log_miss = np.log1p(-p)
-    total = float(np.sum(log_miss))
-    if len(view_data.kind) == 0 or len(g) == 0:
-        return total, 0
-    mu = sim2.apply(sim, view_data.xy.astype(np.float64))
-    var = float(sim[3]) ** 2 * view_data.pos_var.astype(np.float64) + 1.0
+    total = np.bincount(hyp, weights=log_miss, minlength=n_hyp).astype(np.float64)
+    if len(hyp) == 0 or len(g) == 0:
+        return total, np.zeros(n_hyp, np.int64)
+    kind = np.concatenate([v.kind for v in views])
+    theta = np.concatenate([v.theta for v in views])
+    attrs = np.concatenate([v.attrs for v in views])
+    row_sim = np.asarray(sims, np.float64)[hyp]
+    mu = sim2.apply_many(row_sim, np.concatenate([v.xy for v in views])[:, None, :])[:, 0]
+    var = row_sim[:, 3] ** 2 * np.concatenate([v.pos_var for v in views]).astype(np.float64) + 1.0
     gxy = g.xy.astype(np.float64)
     # Pairs only form within a kind: one (model x image) distance table per kind.
     jj_all, gain_all = [], []
     for k, sigma in ATTR_SIGMA.items():
-        jk = np.flatnonzero(view_data.kind == k)
+        jk = np.flatnonzero(kind == k)
         gk = np.flatnonzero(g.kind == k)
         if len(jk) == 0 or len(gk) == 0:
             continue
@@ -585,14 +617,14 @@ def log_probability(view_data: ModelView, feats: ImageFeatures, sim: F64) -> tup
         jj, kk = jk[a], gk[c]
         period = np.pi if k == KIND_PARALLEL else 2 * np.pi
         dth = np.abs(
-            np.mod(g.theta[kk] - view_data.theta[jj] - sim[2] + period / 2, period) - period / 2
+            np.mod(g.theta[kk] - theta[jj] - row_sim[jj, 2] + period / 2, period) - period / 2
         )
         ok = dth <= np.radians(25.0)
         jj, kk, d2_ok = jj[ok], kk[ok], d2[a[ok], c[ok]]
         if len(jj) == 0:
             continue
         active = sigma < 100
-        da = (g.attrs[kk].astype(np.float64) - view_data.attrs[jj]) / sigma
+        da = (g.attrs[kk].astype(np.float64) - attrs[jj]) / sigma
         log_f = -0.5 * (da[:, active] ** 2).sum(axis=1) - float(
             np.sum(np.log(sigma[active] * np.sqrt(2 * np.pi)))
         )
@@ -603,13 +635,15 @@ def log_probability(view_data: ModelView, feats: ImageFeatures, sim: F64) -> tup
         jj_all.append(jj)
         gain_all.append(term - log_miss[jj])
     if not jj_all:
-        return total, 0
+        return total, np.zeros(n_hyp, np.int64)
     jj = np.concatenate(jj_all)
     gain = np.concatenate(gain_all)
     best = np.full(len(p), 0.0)
     np.maximum.at(best, jj, gain)
     paired = best > 0
-    return total + float(best[paired].sum()), int(paired.sum())
+    g_sum = total + np.bincount(hyp[paired], weights=best[paired], minlength=n_hyp).astype(
+        np.float64)
+    return g_sum, np.bincount(hyp[paired], minlength=n_hyp).astype(np.int64)
 
 
 def align(
@@ -673,22 +707,22 @@ def align(
                               config.orientation_tol_deg)
     cov_all = coverage_many(feats, fitted_all, pts, bins, valid)
     order = np.argsort(-cov_all)[: config.max_scored]
-    scored = []
-    for n in order:
-        if cov_all[n] < config.min_coverage:
-            break
-        view = int(hyp_views[n])
-        gval, _ = log_probability(model.model_views[view], feats, fitted_all[n])
-        scored.append((gval + config.coverage_weight * cov_all[n], view, fitted_all[n],
-                       float(cov_all[n])))
+    order = order[cov_all[order] >= config.min_coverage]
+    g_scored, _ = log_probability_many([model.model_views[v] for v in hyp_views[order]],
+                                       feats, fitted_all[order])
+    scored = [(float(gval) + config.coverage_weight * cov_all[n], int(hyp_views[n]),
+               fitted_all[n], float(cov_all[n])) for gval, n in zip(g_scored, order, strict=True)]
     scored.sort(key=lambda item: -item[0])
-    matches: list[Match2D] = []
+    best_views = [view for _, view, _, _ in scored[: config.max_hypotheses]]
+    fitted_best, cov_best = [], []
     for _, view, sim, _ in scored[: config.max_hypotheses]:
         pts, theta = index.fine_edges[view]
-        fitted = extend(feats, sim, pts, theta, config)
-        cov = coverage(feats, fitted, pts, orientation_bin(theta))
-        gval, n_pairs = log_probability(model.model_views[view], feats, fitted)
-        matches.append(Match2D(view, fitted, gval, cov, n_pairs))
+        fitted_best.append(extend(feats, sim, pts, theta, config))
+        cov_best.append(coverage(feats, fitted_best[-1], pts, orientation_bin(theta)))
+    g_best, n_pairs = log_probability_many([model.model_views[v] for v in best_views], feats,
+                                           np.reshape(fitted_best, (-1, 4)))
+    matches = [Match2D(*args) for args in zip(best_views, fitted_best, g_best.tolist(),
+                                                 cov_best, n_pairs.tolist(), strict=True)]
     # Pope & Lowe rank by g; coverage alone prefers small views that match
     # a part of the object (one plate of a barbell) perfectly.
     matches.sort(key=lambda m: -(m.log_probability + config.coverage_weight * m.coverage))

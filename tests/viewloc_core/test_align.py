@@ -60,6 +60,30 @@ def test_recovers_similarity_of_a_warped_training_image(
     assert abs(got[3] / expected[3] - 1.0) < 0.01
 
 
+def test_batched_log_probability_keeps_hypotheses_apart(renderer, bracket_mesh, bracket_model):
+    """g of several hypotheses scored at once equals each scored alone, and
+    the true similarity beats shifted and rotated ones."""
+    from viewloc_core.align import log_probability, log_probability_many
+
+    model = bracket_model
+    t = int(np.flatnonzero(np.all(model.training.sim_to_model == [0, 0, 0, 1], axis=1))[0])
+    view = int(model.training.model_view[t])
+    image, c = _training_image(renderer, bracket_mesh, model, t)
+    feats = extract_features(image)
+    true_sim = np.array([c, c, 0.0, 1.0])
+    other = (view + 1) % len(model.model_views)
+    views = [model.model_views[v] for v in (view, view, other, view)]
+    sims = np.array([true_sim, true_sim + [25.0, -10.0, 0.0, 0.0], true_sim,
+                     true_sim + [0.0, 0.0, 0.6, 0.0]])
+    g_many, n_many = log_probability_many(views, feats, sims)
+    for h, (v, s) in enumerate(zip(views, sims, strict=True)):
+        g_one, n_one = log_probability(v, feats, s)
+        assert g_many[h] == pytest.approx(g_one, rel=1e-9, abs=1e-9)
+        assert n_many[h] == n_one
+    assert g_many[0] > g_many[1] and g_many[0] > g_many[3]
+    assert n_many[0] > 0
+
+
 def test_finds_the_object_in_clutter(renderer, bracket_mesh, bracket_model):
     cam = Camera(520.0, 520.0, 201.3, 148.9, 400, 300)
     hits = 0
