@@ -9,6 +9,7 @@ are extrinsic rotations about the fixed x, then y, then z axis, so that
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -149,8 +150,17 @@ class Pose:
 
     @property
     def euler_xyz_deg(self) -> Array:
-        """(3,) extrinsic x-y-z Euler angles in degrees."""
-        return Rotation.from_matrix(orthonormalize(self.R_m2c)).as_euler("xyz", degrees=True)
+        """(3,) extrinsic x-y-z Euler angles in degrees.
+
+        At gimbal lock (middle angle ±90°) the first and third angles are not
+        unique; scipy then sets the third to zero, which still gives the
+        rotation exactly.
+        """
+        rotation = Rotation.from_matrix(orthonormalize(self.R_m2c))
+        with warnings.catch_warnings():
+            # scipy warns at gimbal lock; the angles it returns are valid.
+            warnings.filterwarnings("ignore", "Gimbal lock detected", UserWarning)
+            return np.asarray(rotation.as_euler("xyz", degrees=True), dtype=np.float64)
 
     def inverse(self) -> Pose:
         """Camera -> object transform."""

@@ -62,3 +62,15 @@ def test_orthonormalize_repairs_a_noisy_rotation():
     R = orthonormalize(np.eye(3) + 1e-3 * rng.standard_normal((3, 3)))
     np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
     assert np.linalg.det(R) > 0
+
+
+def test_euler_angles_at_gimbal_lock_round_trip_without_warning():
+    import warnings
+
+    for middle in (90.0, -90.0):
+        pose = Pose.from_euler_xyz_deg(np.array([30.0, middle, 40.0]), np.zeros(3))
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            angles = pose.euler_xyz_deg
+        again = Pose.from_euler_xyz_deg(angles, np.zeros(3))
+        assert rotation_angle_deg(again.R_m2c, pose.R_m2c) < 1e-6
