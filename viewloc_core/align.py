@@ -587,6 +587,8 @@ def log_probability_many(views: Sequence[ModelView], feats: ImageFeatures, sims:
     """
     g = feats.grouped
     n_hyp = len(views)
+    if n_hyp == 0:
+        return np.zeros(0), np.zeros(0, np.int64)
     area = float(feats.shape[0] * feats.shape[1])
     hyp = np.repeat(np.arange(n_hyp), [len(v.kind) for v in views])
     p = np.minimum(np.concatenate([v.presence for v in views]).astype(np.float64), 0.999)

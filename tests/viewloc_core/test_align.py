@@ -82,6 +82,8 @@ def test_batched_log_probability_keeps_hypotheses_apart(renderer, bracket_mesh, 
         assert n_many[h] == n_one
     assert g_many[0] > g_many[1] and g_many[0] > g_many[3]
     assert n_many[0] > 0
+    g_none, n_none = log_probability_many([], feats, np.zeros((0, 4)))
+    assert g_none.shape == (0,) and n_none.shape == (0,)
 
 
 def test_finds_the_object_in_clutter(renderer, bracket_mesh, bracket_model):
