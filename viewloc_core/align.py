@@ -337,36 +337,10 @@ def extend(
     (4,) float64
         The re-fitted similarity (the input when the fit degenerates).
     """
-    if len(feats.edge_xy) < 4 or len(pts) < 4:
-        return sim
-    tol = np.radians(config.orientation_tol_deg)
-    current = np.asarray(sim, dtype=np.float64)
-    for radius in config.icp_radii_px:
-        uv = sim2.apply(current, pts)
-        ok, nn = feats.nearest_edges(uv, radius)
-        if ok.sum() < 6:
-            break
-        nn = nn[ok]
-        dth = np.abs(np.mod(theta[ok] + current[2] - feats.edge_theta[nn], np.pi))
-        dth = np.minimum(dth, np.pi - dth)
-        good = dth < tol
-        if good.sum() < 6:
-            break
-        img_theta = feats.edge_theta[nn[good]].astype(np.float64)
-        normals = np.stack([-np.sin(img_theta), np.cos(img_theta)], axis=1)
-        src = pts[ok][good]
-        dst = feats.edge_xy[nn[good]].astype(np.float64)
-        off = uv[ok][good] - dst
-        resid = np.abs(off[:, 0] * normals[:, 0] + off[:, 1] * normals[:, 1])
-        # Huber weights: far pairings are likely clutter.
-        huber = np.where(resid <= 1.0, 1.0, 1.0 / np.maximum(resid, 1e-9))
-        fitted = sim2.fit_point_to_line(src, dst, normals, huber)
-        if fitted is None or not np.all(np.isfinite(fitted)):
-            break
-        if not (0.5 * current[3] < fitted[3] < 2.0 * current[3]):
-            break
-        current = fitted
-    return current
+    p = np.asarray(pts, np.float64)
+    return extend_many(feats, np.asarray(sim, np.float64)[None], p[None],
+                       np.asarray(theta, np.float64)[None], np.ones((1, len(p)), bool),
+                       config.icp_radii_px, config.orientation_tol_deg, robust=True)[0]
 
 
 def _bin_keys(views: NDArray[np.int64], sims: F64, config: AlignConfig,
@@ -506,13 +480,46 @@ def coverage_many(feats: ImageFeatures, sims: F64, pts: F64, bins: NDArray[np.in
 
 
 def extend_many(feats: ImageFeatures, sims: F64, pts: F64, theta: F64,
-                 valid: NDArray[np.bool_], radii: tuple[float, ...], tol_deg: float) -> F64:
-    """``extend`` for H hypotheses at once (batched normal equations)."""
+                valid: NDArray[np.bool_], radii: tuple[float, ...], tol_deg: float,
+                robust: bool = False) -> F64:
+    """Greedy extension of H hypotheses at once (batched normal equations).
+
+    Each step pairs every valid edge sample with the nearest image edge
+    within the step's radius and of similar orientation, and re-fits the
+    similarity to minimise the point-to-line distances.
+
+    Parameters
+    ----------
+    feats : ImageFeatures
+    sims : (H, 4) array
+        Initial model -> image similarities.
+    pts : (H, P, 2) array
+        Model edge samples of each hypothesis (padded to one length).
+    theta : (H, P) array
+        Their orientations modulo π.
+    valid : (H, P) bool
+        Which samples are real (not padding).
+    radii : tuple of float
+        Pairing radius of each step, pixels.
+    tol_deg : float
+        Largest orientation difference of a pairing.
+    robust : bool
+        The final fit (:func:`extend`): Huber weights on the residuals (far
+        pairings are likely clutter), a relative test for degenerate
+        systems, and a hypothesis stops at its first failed step. Without,
+        the quick screen: unweighted, and a failed step is skipped.
+
+    Returns
+    -------
+    (H, 4) float64
+        The re-fitted similarities (a hypothesis keeps its last good one).
+    """
     if len(feats.edge_xy) == 0:
         return sims
     current = sims.copy()
     tol = np.radians(tol_deg)
     hh, pp = theta.shape
+    alive = np.ones(hh, bool)
     for radius in radii:
         uv = sim2.apply_many(current, pts)
         found, nn = feats.nearest_edges(uv.reshape(-1, 2), radius)
@@ -525,6 +532,9 @@ def extend_many(feats: ImageFeatures, sims: F64, pts: F64, theta: F64,
         wgt = use.astype(np.float64)
         nx, ny = -np.sin(img_theta), np.cos(img_theta)
         dst = feats.edge_xy[nn].astype(np.float64)
+        if robust:
+            resid = np.abs((uv[..., 0] - dst[..., 0]) * nx + (uv[..., 1] - dst[..., 1]) * ny)
+            wgt *= np.where(resid <= 1.0, 1.0, 1.0 / np.maximum(resid, 1e-9))
         sx, sy = pts[..., 0], pts[..., 1]
         A = np.stack([nx * sx + ny * sy, -nx * sy + ny * sx, nx, ny], axis=-1)
         rhs = nx * dst[..., 0] + ny * dst[..., 1]
@@ -534,13 +544,22 @@ def extend_many(feats: ImageFeatures, sims: F64, pts: F64, theta: F64,
         Atb = np.matmul(Aw.transpose(0, 2, 1), rhs[..., None])[..., 0]
         ok = use.sum(axis=1) >= 6
         AtA[~ok] = np.eye(4)
-        det = np.linalg.det(AtA)
-        ok &= np.abs(det) > 1e-9
+        det = np.abs(np.linalg.det(AtA))
+        if robust:
+            # Degenerate when the edges constrain fewer than 4 directions
+            # (one line), relative to the system's own size.
+            trace = np.maximum(np.trace(AtA, axis1=1, axis2=2), 1e-12)
+            ok &= det >= 1e-9 * trace**4
+        else:
+            ok &= det > 1e-9
         AtA[~ok] = np.eye(4)
         sol = np.linalg.solve(AtA, Atb[..., None])[..., 0]
         scale = np.hypot(sol[:, 0], sol[:, 1])
         ok &= (scale > 0.5 * current[:, 3]) & (scale < 2.0 * current[:, 3])
         new = np.stack([sol[:, 2], sol[:, 3], np.arctan2(sol[:, 1], sol[:, 0]), scale], axis=1)
+        if robust:
+            ok &= np.isfinite(new).all(axis=1) & alive
+            alive = ok
         current[ok] = new[ok]
     return current
 
@@ -715,16 +734,18 @@ def align(
     scored = [(float(gval) + config.coverage_weight * cov_all[n], int(hyp_views[n]),
                fitted_all[n], float(cov_all[n])) for gval, n in zip(g_scored, order, strict=True)]
     scored.sort(key=lambda item: -item[0])
-    best_views = [view for _, view, _, _ in scored[: config.max_hypotheses]]
-    fitted_best, cov_best = [], []
-    for _, view, sim, _ in scored[: config.max_hypotheses]:
-        pts, theta = index.fine_edges[view]
-        fitted_best.append(extend(feats, sim, pts, theta, config))
-        cov_best.append(coverage(feats, fitted_best[-1], pts, orientation_bin(theta)))
+    # The best hypotheses extended on all edge samples of their views, at once.
+    best_views = np.array([view for _, view, _, _ in scored[: config.max_hypotheses]], np.int64)
+    fine_pts, fine_theta, fine_valid = _padded_fine_edges(index, best_views)
+    fitted_best = extend_many(
+        feats, np.reshape([sim for _, _, sim, _ in scored[: config.max_hypotheses]], (-1, 4)),
+        fine_pts, fine_theta, fine_valid, config.icp_radii_px, config.orientation_tol_deg,
+        robust=True)
+    cov_best = coverage_many(feats, fitted_best, fine_pts, orientation_bin(fine_theta), fine_valid)
     g_best, n_pairs = log_probability_many([model.model_views[v] for v in best_views], feats,
-                                           np.reshape(fitted_best, (-1, 4)))
-    matches = [Match2D(*args) for args in zip(best_views, fitted_best, g_best.tolist(),
-                                                 cov_best, n_pairs.tolist(), strict=True)]
+                                           fitted_best)
+    matches = [Match2D(int(v), f, float(gv), float(c), int(n)) for v, f, gv, c, n in zip(
+        best_views, fitted_best, g_best, cov_best, n_pairs, strict=True)]
     # Pope & Lowe rank by g; coverage alone prefers small views that match
     # a part of the object (one plate of a barbell) perfectly.
     matches.sort(key=lambda m: -(m.log_probability + config.coverage_weight * m.coverage))
@@ -733,6 +754,19 @@ def align(
             for rank, view, sim, cov in scored[config.max_hypotheses:]]
     return suppress_duplicates(matches + rest, index.view_radius_px, max_matches,
                                config.max_alternatives)
+
+
+def _padded_fine_edges(index: ModelIndex, views: NDArray[np.int64]
+                       ) -> tuple[F64, F64, NDArray[np.bool_]]:
+    """All edge samples of some model views, padded to one length: (H, P, 2), (H, P), (H, P)."""
+    n = max((len(index.fine_edges[v][1]) for v in views), default=0)
+    pts = np.zeros((len(views), n, 2))
+    theta = np.zeros((len(views), n))
+    valid = np.zeros((len(views), n), bool)
+    for h, v in enumerate(views):
+        p, t = index.fine_edges[v]
+        pts[h, : len(t)], theta[h, : len(t)], valid[h, : len(t)] = p, t, True
+    return pts, theta, valid
 
 
 def suppress_duplicates(matches: list[Match2D], view_radius_px: float,

@@ -86,6 +86,33 @@ def test_batched_log_probability_keeps_hypotheses_apart(renderer, bracket_mesh, 
     assert g_none.shape == (0,) and n_none.shape == (0,)
 
 
+def test_batched_extension_equals_each_hypothesis_alone(renderer, bracket_mesh, bracket_model):
+    """The final fit of several hypotheses at once (padded edge sets of
+    different lengths) gives what each gives alone, and snaps a start a few
+    pixels and degrees off back onto the training image."""
+    from viewloc_core.align import AlignConfig, _padded_fine_edges, extend, extend_many
+
+    model = bracket_model
+    t = int(np.flatnonzero(np.all(model.training.sim_to_model == [0, 0, 0, 1], axis=1))[0])
+    view = int(model.training.model_view[t])
+    image, c = _training_image(renderer, bracket_mesh, model, t)
+    feats = extract_features(image)
+    config = AlignConfig()
+    index = model_index(model)
+    views = [view, (view + 1) % len(model.model_views), view]
+    starts = np.array([[c + 3.0, c - 2.0, 0.05, 1.03], [c, c, 0.0, 1.0],
+                       [c - 2.0, c + 1.0, -0.04, 0.98]])
+    pts, theta, valid = _padded_fine_edges(index, np.array(views))
+    batched = extend_many(feats, starts, pts, theta, valid, config.icp_radii_px,
+                          config.orientation_tol_deg, robust=True)
+    for h, v in enumerate(views):
+        alone = extend(feats, starts[h], *index.fine_edges[v], config)
+        np.testing.assert_allclose(batched[h], alone, rtol=1e-9, atol=1e-9)
+    for h in (0, 2):
+        assert np.hypot(*(batched[h, :2] - c)) < 0.5
+        assert abs(batched[h, 2]) < np.radians(0.5) and abs(batched[h, 3] - 1.0) < 0.005
+
+
 def test_finds_the_object_in_clutter(renderer, bracket_mesh, bracket_model):
     cam = Camera(520.0, 520.0, 201.3, 148.9, 400, 300)
     hits = 0
