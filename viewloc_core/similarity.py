@@ -86,60 +86,6 @@ def wrap_angle(a: NDArray[np.floating] | float) -> Array:
     return np.asarray(-(np.mod(-np.asarray(a, dtype=np.float64) + np.pi, 2 * np.pi) - np.pi))
 
 
-def fit_point_to_line(
-    src: NDArray[np.floating],
-    dst: NDArray[np.floating],
-    normals: NDArray[np.floating],
-    weights: NDArray[np.floating] | None = None,
-) -> Array | None:
-    """Least-squares similarity minimising point-to-line distances.
-
-    Minimises ``Σ w_i (n_i · (T(src_i) − dst_i))²`` over the similarity,
-    linear in ``(a, b, tx, ty)`` with ``T(p) = [[a, −b], [b, a]] p + t``.
-
-    Parameters
-    ----------
-    src : (N, 2) array
-        Model-view points.
-    dst : (N, 2) array
-        Matched image points.
-    normals : (N, 2) array
-        Unit normals of the image edges at ``dst``.
-    weights : (N,) array, optional
-
-    Returns
-    -------
-    (4,) float64 or None
-        ``(x, y, angle, scale)``; None when the system is degenerate.
-    """
-    src = np.asarray(src, dtype=np.float64)
-    dst = np.asarray(dst, dtype=np.float64)
-    n = np.asarray(normals, dtype=np.float64)
-    w = np.ones(len(src)) if weights is None else np.asarray(weights, dtype=np.float64)
-    if len(src) < 4:
-        return None
-    nx, ny = n[:, 0], n[:, 1]
-    sx, sy = src[:, 0], src[:, 1]
-    sw = np.sqrt(w)
-    # Rows of the design matrix already weighted by √w.
-    Aw = np.empty((len(src), 4))
-    Aw[:, 0] = nx * sx + ny * sy
-    Aw[:, 1] = -nx * sy + ny * sx
-    Aw[:, 2] = nx
-    Aw[:, 3] = ny
-    Aw *= sw[:, None]
-    b = nx * dst[:, 0] + ny * dst[:, 1]
-    AtA = Aw.T @ Aw
-    # Degenerate when the edges constrain fewer than 4 directions (one line).
-    if abs(np.linalg.det(AtA)) < 1e-9 * max(float(np.trace(AtA)), 1e-12) ** 4:
-        return None
-    a, bb, tx, ty = np.linalg.solve(AtA, Aw.T @ (b * sw))
-    scale = float(np.hypot(a, bb))
-    if scale <= 1e-6:
-        return None
-    return np.array([tx, ty, float(np.arctan2(bb, a)), scale])
-
-
 def fit_points(
     src: NDArray[np.floating],
     dst: NDArray[np.floating],

@@ -113,6 +113,20 @@ def test_batched_extension_equals_each_hypothesis_alone(renderer, bracket_mesh, 
         assert abs(batched[h, 2]) < np.radians(0.5) and abs(batched[h, 3] - 1.0) < 0.005
 
 
+def test_extension_keeps_the_start_when_the_edges_lie_on_one_line():
+    """One straight edge cannot fix a similarity (slide along it, scale):
+    the fit is degenerate and the start is kept, not replaced by noise."""
+    from viewloc_core.align import AlignConfig, extend
+
+    image = np.full((200, 300), 40, np.uint8)
+    image[100:, :] = 200
+    feats = extract_features(image)
+    pts = np.stack([np.linspace(-60.0, 60.0, 40), np.zeros(40)], axis=1)
+    start = np.array([150.0, 101.5, 0.0, 1.0])
+    got = extend(feats, start, pts, np.zeros(40), AlignConfig())
+    np.testing.assert_array_equal(got, start)
+
+
 def test_finds_the_object_in_clutter(renderer, bracket_mesh, bracket_model):
     cam = Camera(520.0, 520.0, 201.3, 148.9, 400, 300)
     hits = 0

@@ -33,15 +33,3 @@ def test_point_fits_recover_the_transform(a):
     got = sim2.fit_points(src, dst)
     assert got is not None
     np.testing.assert_allclose(sim2.apply(got, src), dst, atol=1e-6)
-    # Point-to-line with random normals constrains all four parameters too.
-    ang = rng.uniform(0, np.pi, 40)
-    normals = np.stack([np.cos(ang), np.sin(ang)], axis=1)
-    got2 = sim2.fit_point_to_line(src, dst, normals)
-    assert got2 is not None
-    np.testing.assert_allclose(sim2.apply(got2, src), dst, atol=1e-5)
-
-
-def test_point_to_line_degenerate_on_one_line():
-    src = np.stack([np.linspace(0, 10, 20), np.zeros(20)], axis=1)
-    normals = np.tile([0.0, 1.0], (20, 1))
-    assert sim2.fit_point_to_line(src, src, normals) is None
