@@ -131,7 +131,9 @@ def prepare_edges(image: NDArray[np.generic], levels: int = 3) -> EdgePyramid:
     Returns
     -------
     EdgePyramid
-        About 3-4 ms for a 640x480 colour image on this machine.
+        Two levels of a colour image take about 6 ms at 384x288 and 14 ms
+        at 640x480 on this machine (median of 40 calls);
+        :func:`viewloc_core.localize.localize` builds them on another thread.
     """
     if not 1 <= levels <= 5:
         raise InvalidInputError(f"levels must be in 1..5, got {levels}", "levels")
