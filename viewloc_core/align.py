@@ -142,7 +142,12 @@ class Match2D:
 
 @dataclass(frozen=True, slots=True)
 class ModelIndex:
-    """Model features stacked over all views with attribute search trees."""
+    """Model features stacked over all views with attribute search trees.
+
+    The edge samples of every view are padded to one length twice: a
+    well-spread subset (``coarse_*``, screening) and all of them (``fine_*``,
+    the final extension), so hypotheses of different views batch together.
+    """
 
     view_of: NDArray[np.int64]
     kind: NDArray[np.int8]
@@ -155,8 +160,30 @@ class ModelIndex:
     coarse_pts: F64
     coarse_bins: NDArray[np.int64]
     coarse_valid: NDArray[np.bool_]
-    fine_edges: list[tuple[F64, F64]]
+    fine_pts: F64
+    fine_theta: F64
+    fine_bins: NDArray[np.int64]
+    fine_valid: NDArray[np.bool_]
     view_radius_px: float
+
+    def fine_samples(self, views: NDArray[np.int64]) -> tuple[F64, F64, NDArray[np.int64],
+                                                            NDArray[np.bool_]]:
+        """All edge samples of some views, padded to the longest of them.
+
+        Returns
+        -------
+        pts : (H, P, 2) float64
+            Model-view pixels.
+        theta : (H, P) float64
+            Orientations modulo π.
+        bins : (H, P) int64
+            Their orientation bins.
+        valid : (H, P) bool
+            False for padding.
+        """
+        n = int(self.fine_valid[views].sum(axis=1).max(initial=0))
+        return (self.fine_pts[views, :n], self.fine_theta[views, :n],
+                self.fine_bins[views, :n], self.fine_valid[views, :n])
 
 
 def build_index(model: ObjectModel, coarse_points: int = 48) -> ModelIndex:
@@ -179,11 +206,15 @@ def build_index(model: ObjectModel, coarse_points: int = 48) -> ModelIndex:
     coarse_pts = np.zeros((len(views), coarse_points, 2))
     coarse_bins = np.zeros((len(views), coarse_points), np.int64)
     coarse_valid = np.zeros((len(views), coarse_points), bool)
-    fine = []
+    n_fine = max((len(v.edge_theta) for v in views), default=0)
+    fine_pts = np.zeros((len(views), n_fine, 2))
+    fine_theta = np.zeros((len(views), n_fine))
+    fine_valid = np.zeros((len(views), n_fine), bool)
     for i, v in enumerate(views):
         exy = v.edge_xy.astype(np.float64)
         eth = v.edge_theta.astype(np.float64)
-        fine.append((exy, eth))
+        fine_pts[i, : len(eth)], fine_theta[i, : len(eth)], fine_valid[i, : len(eth)] = (
+            exy, eth, True)
         pick = spread_subset(exy, coarse_points, rng)
         coarse_pts[i, : len(pick)] = exy[pick]
         coarse_bins[i, : len(pick)] = orientation_bin(eth[pick])
@@ -191,7 +222,8 @@ def build_index(model: ObjectModel, coarse_points: int = 48) -> ModelIndex:
     radius = model.f_train_px * model.diameter_mm / model.d0_mm / 2.0
     return ModelIndex(
         view_of, kind, xy, theta, scale, attrs, log_presence, trees,
-        coarse_pts, coarse_bins, coarse_valid, fine, radius,
+        coarse_pts, coarse_bins, coarse_valid, fine_pts, fine_theta, orientation_bin(fine_theta),
+        fine_valid, radius,
     )
 
 
@@ -736,12 +768,12 @@ def align(
     scored.sort(key=lambda item: -item[0])
     # The best hypotheses extended on all edge samples of their views, at once.
     best_views = np.array([view for _, view, _, _ in scored[: config.max_hypotheses]], np.int64)
-    fine_pts, fine_theta, fine_valid = _padded_fine_edges(index, best_views)
+    fine_pts, fine_theta, fine_bins, fine_valid = index.fine_samples(best_views)
     fitted_best = extend_many(
         feats, np.reshape([sim for _, _, sim, _ in scored[: config.max_hypotheses]], (-1, 4)),
         fine_pts, fine_theta, fine_valid, config.icp_radii_px, config.orientation_tol_deg,
         robust=True)
-    cov_best = coverage_many(feats, fitted_best, fine_pts, orientation_bin(fine_theta), fine_valid)
+    cov_best = coverage_many(feats, fitted_best, fine_pts, fine_bins, fine_valid)
     g_best, n_pairs = log_probability_many([model.model_views[v] for v in best_views], feats,
                                            fitted_best)
     matches = [Match2D(int(v), f, float(gv), float(c), int(n)) for v, f, gv, c, n in zip(
@@ -754,19 +786,6 @@ def align(
             for rank, view, sim, cov in scored[config.max_hypotheses:]]
     return suppress_duplicates(matches + rest, index.view_radius_px, max_matches,
                                config.max_alternatives)
-
-
-def _padded_fine_edges(index: ModelIndex, views: NDArray[np.int64]
-                       ) -> tuple[F64, F64, NDArray[np.bool_]]:
-    """All edge samples of some model views, padded to one length: (H, P, 2), (H, P), (H, P)."""
-    n = max((len(index.fine_edges[v][1]) for v in views), default=0)
-    pts = np.zeros((len(views), n, 2))
-    theta = np.zeros((len(views), n))
-    valid = np.zeros((len(views), n), bool)
-    for h, v in enumerate(views):
-        p, t = index.fine_edges[v]
-        pts[h, : len(t)], theta[h, : len(t)], valid[h, : len(t)] = p, t, True
-    return pts, theta, valid
 
 
 def suppress_duplicates(matches: list[Match2D], view_radius_px: float,

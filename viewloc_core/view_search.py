@@ -195,16 +195,12 @@ class ViewCandidate:
         Object vs. clutter evidence of its edge samples (see module docstring).
     hit_fraction : float
         Share of its edge samples confirmed by an image edge.
-    evidence_fraction : float
-        Its log-likelihood ratio as a share of a perfect fit's (see
-        :func:`score_views`).
     """
 
     view: int
     sim: F64
     log_likelihood_ratio: float
     hit_fraction: float
-    evidence_fraction: float
 
 
 def score_views(
@@ -244,21 +240,39 @@ def score_views(
         rows = views[:, None]
         px, py = templates.px[rows, subset], templates.py[rows, subset]
         bins, valid = templates.bins8[rows, subset], templates.valid[rows, subset]
-    return _score(feats, px, py, bins, valid, templates.length_px[views], sims, chance)
+    inside, hit, b = _lay_over(feats, px, py, bins, valid, sims)
+    llr, log_hit = _sample_llr(inside, hit, b, chance)
+    n_valid = np.maximum(valid.sum(axis=1), 1)
+    # The evidence had every sample in the image found its edge.
+    found_table = np.concatenate([np.zeros(ORIENTATION_BINS), log_hit])
+    llr_all_found = found_table[inside.astype(np.uint8) * ORIENTATION_BINS + b].sum(axis=1)
+    return (llr * (templates.length_px[views] * sims[:, 3]), hit.sum(axis=1) / n_valid,
+            llr / np.maximum(llr_all_found, 1e-9))
 
 
 def _score_coarse(feats: ImageFeatures, templates: ViewTemplates, views: NDArray[np.int64],
-                  sims: F64, chance: F64) -> tuple[F64, F64, F64]:
-    """:func:`score_views` on each view's coarse subset."""
-    return _score(feats, templates.coarse_px[views], templates.coarse_py[views],
-                  templates.coarse_bins8[views], templates.coarse_valid[views],
-                  templates.length_px[views], sims, chance)
+                  sims: F64, chance: F64) -> F64:
+    """The log-likelihood ratio of :func:`score_views` on each view's coarse subset."""
+    inside, hit, b = _lay_over(feats, templates.coarse_px[views], templates.coarse_py[views],
+                               templates.coarse_bins8[views], templates.coarse_valid[views], sims)
+    llr, _ = _sample_llr(inside, hit, b, chance)
+    return llr * (templates.length_px[views] * sims[:, 3])
 
 
-def _score(feats: ImageFeatures, px: NDArray[np.float32], py: NDArray[np.float32],
-           bins: NDArray[np.uint8], valid: NDArray[np.bool_], length_px: F64, sims: F64,
-           chance: F64) -> tuple[F64, F64, F64]:
-    """:func:`score_views` on gathered samples: (H, P) coordinates, bins and validity."""
+def _lay_over(feats: ImageFeatures, px: NDArray[np.float32], py: NDArray[np.float32],
+              bins: NDArray[np.uint8], valid: NDArray[np.bool_], sims: F64
+              ) -> tuple[NDArray[np.bool_], NDArray[np.bool_], NDArray[np.uint8]]:
+    """Gathered samples, (H, P) coordinates, bins and validity, laid over the image.
+
+    Returns
+    -------
+    inside : (H, P) bool
+        Valid and inside the image.
+    hit : (H, P) bool
+        Inside and on an image edge of its (turned) orientation.
+    bins : (H, P) uint8
+        Orientation bins turned by each similarity's in-plane angle.
+    """
     h, w = feats.shape
     c = (sims[:, 3] * np.cos(sims[:, 2]))[:, None].astype(np.float32)
     sn = (sims[:, 3] * np.sin(sims[:, 2]))[:, None].astype(np.float32)
@@ -275,6 +289,13 @@ def _score(feats: ImageFeatures, px: NDArray[np.float32], py: NDArray[np.float32
     b &= ORIENTATION_BINS - 1
     hit = (got & _WANTED[b]) != 0
     hit &= inside
+    return inside, hit, b
+
+
+def _sample_llr(inside: NDArray[np.bool_], hit: NDArray[np.bool_], bins: NDArray[np.uint8],
+                chance: F64) -> tuple[F64, F64]:
+    """(H,) log-likelihood ratio summed over samples (unweighted), and the
+    per-bin log odds of a hit, ``log(q / b_o)``."""
     log_hit = np.log(TRUE_HIT_RATE / chance)
     log_miss = np.log((1.0 - TRUE_HIT_RATE) / (1.0 - chance))
     # One table per outcome: outside (unknown, adds nothing), missed, hit.
@@ -283,15 +304,7 @@ def _score(feats: ImageFeatures, px: NDArray[np.float32], py: NDArray[np.float32
     state = inside.astype(np.uint8)
     state += hit
     state *= ORIENTATION_BINS
-    per_sample = table[state + b]
-    weight = length_px * sims[:, 3]
-    n_valid = np.maximum(valid.sum(axis=1), 1)
-    llr = per_sample.sum(axis=1)
-    # The evidence had every sample in the image found its edge.
-    found_table = np.concatenate([np.zeros(ORIENTATION_BINS), log_hit])
-    llr_all_found = found_table[inside.astype(np.uint8) * ORIENTATION_BINS + b].sum(axis=1)
-    return (llr * weight, hit.sum(axis=1) / n_valid,
-            llr / np.maximum(llr_all_found, 1e-9))
+    return table[state + bins].sum(axis=1), log_hit
 
 
 def best_member(
@@ -394,12 +407,12 @@ def search_views(
     stage1 = _grid_sims(seeds, np.radians(SCREEN_ANGLES_DEG), (1.0,))
     views1 = np.tile(np.arange(n_views), len(stage1))
     sims1 = np.repeat(stage1, n_views, axis=0)
-    llr1, _, _ = _score_coarse(feats, templates, views1, sims1, chance)
+    llr1 = _score_coarse(feats, templates, views1, sims1, chance)
     best_views = _best_distinct(views1, llr1, SCREENED_VIEWS)
     stage2 = _grid_sims(seeds, np.radians(COARSE_ANGLES_DEG), COARSE_SCALES)
     views = np.tile(views1[best_views], len(stage2))
     sims = np.repeat(stage2, len(best_views), axis=0)
-    llr, _, _ = _score_coarse(feats, templates, views, sims, chance)
+    llr = _score_coarse(feats, templates, views, sims, chance)
     # The best few distinct views go on to the least-squares fit.
     pick = _best_distinct(views, llr, FITTED_CANDIDATES)
     fit_views = views[pick]
@@ -411,7 +424,8 @@ def search_views(
     before = score_views(feats, templates, fit_views, sims[pick], chance)
     better = after[0] >= before[0]
     final_sims = np.where(better[:, None], fitted, sims[pick])
-    llr, frac, evid = (np.where(better, a, b) for a, b in zip(after, before, strict=True))
+    llr = np.where(better, after[0], before[0])
+    frac = np.where(better, after[1], before[1])
     best = np.argsort(-llr)[:max_candidates]
-    return [ViewCandidate(int(fit_views[i]), final_sims[i], float(llr[i]), float(frac[i]),
-                          float(evid[i])) for i in best]
+    return [ViewCandidate(int(fit_views[i]), final_sims[i], float(llr[i]), float(frac[i]))
+            for i in best]

@@ -90,7 +90,7 @@ def test_batched_extension_equals_each_hypothesis_alone(renderer, bracket_mesh, 
     """The final fit of several hypotheses at once (padded edge sets of
     different lengths) gives what each gives alone, and snaps a start a few
     pixels and degrees off back onto the training image."""
-    from viewloc_core.align import AlignConfig, _padded_fine_edges, extend, extend_many
+    from viewloc_core.align import AlignConfig, extend, extend_many
 
     model = bracket_model
     t = int(np.flatnonzero(np.all(model.training.sim_to_model == [0, 0, 0, 1], axis=1))[0])
@@ -102,11 +102,13 @@ def test_batched_extension_equals_each_hypothesis_alone(renderer, bracket_mesh, 
     views = [view, (view + 1) % len(model.model_views), view]
     starts = np.array([[c + 3.0, c - 2.0, 0.05, 1.03], [c, c, 0.0, 1.0],
                        [c - 2.0, c + 1.0, -0.04, 0.98]])
-    pts, theta, valid = _padded_fine_edges(index, np.array(views))
+    pts, theta, _, valid = index.fine_samples(np.array(views))
     batched = extend_many(feats, starts, pts, theta, valid, config.icp_radii_px,
                           config.orientation_tol_deg, robust=True)
     for h, v in enumerate(views):
-        alone = extend(feats, starts[h], *index.fine_edges[v], config)
+        mv = model.model_views[v]
+        alone = extend(feats, starts[h], mv.edge_xy.astype(np.float64),
+                       mv.edge_theta.astype(np.float64), config)
         np.testing.assert_allclose(batched[h], alone, rtol=1e-9, atol=1e-9)
     for h in (0, 2):
         assert np.hypot(*(batched[h, :2] - c)) < 0.5

@@ -137,8 +137,7 @@ def test_scores_match_a_sample_by_sample_count(renderer, bracket_mesh, bracket_m
     # The coarse screening scores exactly the coarse subsets.
     coarse = _score_coarse(feats, templates, views, sims, chance)
     subset = score_views(feats, templates, views, sims, chance, templates.coarse[views])
-    for a, b in zip(coarse, subset, strict=True):
-        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(coarse, subset[0])
     assert frac[1] > 0.5
 
 
