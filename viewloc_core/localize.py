@@ -388,8 +388,9 @@ def localize(
     fitted = [_final_detection(model, loc, level, factor, camera, edges, contour,
                                index.view_radius_px)
               for loc in located[: options.max_detections]]
-    detections = [d for d in _ranked([d for d in fitted if d.score >= min_score])
-                  if d.score >= min_score]
+    # _ranked lowers a score only to that of a detection above it, itself
+    # at least min_score: nothing falls under min_score on the way.
+    detections = _ranked([d for d in fitted if d.score >= min_score])
     timing["pose"] = (time.perf_counter() - t4) * 1e3
     timing["total"] = (time.perf_counter() - t0) * 1e3
     return LocalizationResult(detections, timing)
