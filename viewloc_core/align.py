@@ -316,7 +316,8 @@ def _seeds(index: ModelIndex, feats: ImageFeatures, k: NDArray[np.int64], j: NDA
 def coverage(
     feats: ImageFeatures, sim: F64, pts: F64, bins: NDArray[np.int64]
 ) -> float:
-    """Fraction of edge samples that land on an image edge of similar orientation.
+    """Fraction of edge samples that land on an image edge of similar orientation
+    (the one-hypothesis case of :func:`coverage_many`).
 
     Parameters
     ----------
@@ -335,17 +336,9 @@ def coverage(
     """
     if len(pts) == 0:
         return 0.0
-    uv = sim2.apply(sim, pts)
-    h, w = feats.shape
-    u = np.rint(uv[:, 0]).astype(np.int64)
-    v = np.rint(uv[:, 1]).astype(np.int64)
-    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
-    b = (bins + int(orientation_turn(sim[2]))) % 16
-    # Accept the bin and its two neighbours (±1 bin = ±11.25°).
-    want = wanted_bits(b)
-    got = np.zeros(len(pts), np.uint16)
-    got[inside] = feats.orientation_bits[v[inside], u[inside]]
-    return float(np.count_nonzero(got & want.astype(np.uint16)) / len(pts))
+    p = np.asarray(pts, np.float64)
+    return float(coverage_many(feats, np.asarray(sim, np.float64)[None], p[None],
+                               np.asarray(bins, np.int64)[None], np.ones((1, len(p)), bool))[0])
 
 
 def extend(
