@@ -299,7 +299,9 @@ def _pairings(index: ModelIndex, feats: ImageFeatures, config: AlignConfig) -> t
         d2 = pairs["v"] ** 2
         active = sigma < 100
         log_f = -0.5 * d2 - float(np.sum(np.log(sigma[active] * np.sqrt(2 * np.pi))))
-        w = index.log_presence[mj] + log_f - _log_background_density(k, img_attrs[pairs["i"]])
+        # Per image feature, not per pairing: a busy image pairs millions of times.
+        log_bg = _log_background_density(k, img_attrs)
+        w = index.log_presence[mj] + log_f - log_bg[pairs["i"]]
         ks_all.append(ki)
         js_all.append(mj)
         ws_all.append(w)
