@@ -30,11 +30,14 @@ PRIOR_PSEUDO_FEATURES = 20.0
 #: kernel is one standard deviation wide (two bins).
 _BIN = 0.5
 _KERNEL_BINS = 1.0 / _BIN
+#: The kernel is cut at this many standard deviations.
 _TRUNCATE = 4.0
+_REACH_BINS = int(_TRUNCATE / _BIN)
 #: Weight the discrete smoothing kernel gives a count's own bin, per axis
 #: (close to the continuous peak 1/sqrt(2π) per standard deviation).
-_OWN_WEIGHT = float(gaussian_filter1d(np.eye(1, 17, 8)[0], _KERNEL_BINS, mode="constant",
-                                      truncate=_TRUNCATE)[8])
+_OWN_WEIGHT = float(gaussian_filter1d(np.eye(1, 2 * _REACH_BINS + 1, _REACH_BINS)[0],
+                                      _KERNEL_BINS, mode="constant",
+                                      truncate=_TRUNCATE)[_REACH_BINS])
 
 
 def log_image_density(attrs: F64, sd: F64, log_prior: F64) -> F64:
@@ -57,16 +60,20 @@ def log_image_density(attrs: F64, sd: F64, log_prior: F64) -> F64:
         density of the other N - 1 features, ``n0`` is
         :data:`PRIOR_PSEUDO_FEATURES`.
     """
-    n, d = attrs.shape
     log_prior = np.asarray(log_prior, np.float64)
+    out = log_prior.copy()
+    # A feature with an undefined attribute keeps the prior and is no one's
+    # neighbour.
+    finite = np.isfinite(attrs).all(axis=1) & np.isfinite(log_prior)
+    z = attrs[finite] / sd
+    n, d = z.shape
     if n < 2:
-        return log_prior.copy()
-    z = attrs / sd
+        return out
     # A smoothed histogram costs O(N) where pairwise kernels would cost
     # O(N^2): a checkerboard's thousands of junctions sit in a few bins.
     lo = z.min(axis=0) - _TRUNCATE  # the kernel reaches 4 sd: room on both sides
     cell = np.floor((z - lo) / _BIN).astype(np.int64)
-    counts = np.zeros(tuple(cell.max(axis=0) + 1 + int(_TRUNCATE / _BIN)), np.float64)
+    counts = np.zeros(tuple(cell.max(axis=0) + 1 + _REACH_BINS), np.float64)
     np.add.at(counts, tuple(cell.T), 1.0)
     smooth = gaussian_filter(counts, _KERNEL_BINS, mode="constant", truncate=_TRUNCATE)
     # Leave one out: a feature's own count adds the kernel's centre weight to
@@ -74,5 +81,6 @@ def log_image_density(attrs: F64, sd: F64, log_prior: F64) -> F64:
     others = np.maximum(smooth[tuple(cell.T)] - _OWN_WEIGHT**d, 0.0) / _BIN**d
     # Per unit of z -> per unit of the attributes themselves.
     log_others = np.log(np.maximum(others, 1e-300)) - float(np.sum(np.log(sd)))
-    return np.asarray(np.logaddexp(log_others, np.log(PRIOR_PSEUDO_FEATURES) + log_prior)
-                      - np.log(n - 1 + PRIOR_PSEUDO_FEATURES), np.float64)
+    out[finite] = (np.logaddexp(log_others, np.log(PRIOR_PSEUDO_FEATURES) + log_prior[finite])
+                   - np.log(n - 1 + PRIOR_PSEUDO_FEATURES))
+    return out

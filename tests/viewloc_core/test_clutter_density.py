@@ -63,3 +63,12 @@ def test_the_order_of_the_features_does_not_matter(n, seed):
     # Never below the prior's share of the mixture.
     assert np.all(out >= log_prior + np.log(PRIOR_PSEUDO_FEATURES / (n - 1 + PRIOR_PSEUDO_FEATURES))
                   - 1e-9)
+
+
+def test_an_undefined_attribute_keeps_the_prior_and_is_no_ones_neighbour():
+    attrs = np.array([[0.0], [np.nan], [0.0], [np.inf]])
+    log_prior = np.full(4, -1.0)
+    out = log_image_density(attrs, np.array([0.5]), log_prior)
+    np.testing.assert_allclose(out[[1, 3]], log_prior[[1, 3]])
+    np.testing.assert_allclose(out[[0, 2]], log_image_density(attrs[[0, 2]], np.array([0.5]),
+                                                              log_prior[[0, 2]]))
