@@ -34,6 +34,7 @@ from viewloc_core.features import (
     KIND_ARC,
     KIND_JUNCTION,
     KIND_PARALLEL,
+    ORIENTATION_BINS,
     ImageFeatures,
     orientation_bin,
     orientation_turn,
@@ -516,7 +517,7 @@ def coverage_many(feats: ImageFeatures, sims: F64, pts: F64, bins: NDArray[np.in
     u = np.rint(uv[..., 0]).astype(np.int64)
     v = np.rint(uv[..., 1]).astype(np.int64)
     inside = (u >= 0) & (u < w) & (v >= 0) & (v < h) & valid
-    b = (bins + orientation_turn(sims[:, 2])[:, None]) % 16
+    b = (bins + orientation_turn(sims[:, 2])[:, None]) % ORIENTATION_BINS
     want = wanted_bits(b)
     got = np.zeros(u.shape, np.int64)
     got[inside] = feats.orientation_bits[v[inside], u[inside]]
@@ -774,7 +775,7 @@ def align(
     pts = index.coarse_pts[hyp_views]
     bins = index.coarse_bins[hyp_views]
     valid = index.coarse_valid[hyp_views]
-    theta_c = np.asarray((bins + 0.5) * (np.pi / 16), dtype=np.float64)
+    theta_c = np.asarray((bins + 0.5) * (np.pi / ORIENTATION_BINS), dtype=np.float64)
     fitted_all = extend_many(feats, hyp_sims, pts, theta_c, valid, config.coarse_radii_px,
                               config.orientation_tol_deg)
     cov_all = coverage_many(feats, fitted_all, pts, bins, valid)

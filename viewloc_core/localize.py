@@ -191,9 +191,11 @@ def _fit_rank(result: RefinementResult) -> float:
 
 def _refit_from_other_starts(
     model: ObjectModel, loc: _Located, factor: float, camera: Camera, edges: EdgePyramid,
-    contour: ContourModel, t_view: int, similarity: Similarity2D, result: RefinementResult,
-) -> tuple[RefinementResult, int, Similarity2D]:
-    """A poor first refinement tried again from other starts; the better fit and its start.
+    contour: ContourModel, t_view: int, similarity: Similarity2D, start: Pose,
+    result: RefinementResult,
+) -> tuple[RefinementResult, int, Similarity2D, Pose]:
+    """A poor first refinement tried again from other starts; the better fit
+    and its start (training view, similarity and the pose they give).
 
     The refinement's capture range in depth is a few %, less than the error
     of a depth from the 2D scale: other depths, then the runners-up of the
@@ -203,19 +205,19 @@ def _refit_from_other_starts(
     starts = [(t_view, Similarity2D(similarity.x, similarity.y, similarity.angle_deg,
                                     similarity.scale * f)) for f in DEPTH_STARTS]
     starts += [(c.view, _to_full_resolution(c.sim, factor)) for c in loc.candidates[1:]]
-    best_start: tuple[float, int, Similarity2D, Pose] | None = None
+    best_start: tuple[float, int, Similarity2D, Pose, Pose] | None = None
     for t_c, sim_c in starts:
-        quick = refine_pose(edges, camera, _pose_centred(model, t_c, sim_c, camera),
-                            contour, QUICK_REFINE)
+        pose_c = _pose_centred(model, t_c, sim_c, camera)
+        quick = refine_pose(edges, camera, pose_c, contour, QUICK_REFINE)
         if best_start is None or _fit_rank(quick) > best_start[0]:
-            best_start = (_fit_rank(quick), t_c, sim_c, quick.pose)
+            best_start = (_fit_rank(quick), t_c, sim_c, pose_c, quick.pose)
         if _fit_rank(quick) >= GOOD_FIT_FRACTION:
             break
     if best_start is not None:
-        other = refine_pose(edges, camera, best_start[3], contour, FINAL_REFINE)
+        other = refine_pose(edges, camera, best_start[4], contour, FINAL_REFINE)
         if _fit_rank(other) > _fit_rank(result):
-            return other, best_start[1], best_start[2]
-    return result, t_view, similarity
+            return other, best_start[1], best_start[2], best_start[3]
+    return result, t_view, similarity, start
 
 
 def _final_detection(
@@ -240,9 +242,9 @@ def _final_detection(
     if contour is not None and edges is not None:
         result = refine_pose(edges, camera, pose_centred, contour, FINAL_REFINE)
         if _fit_rank(result) < GOOD_FIT_FRACTION:
-            result, t_view, similarity = _refit_from_other_starts(
-                model, loc, factor, camera, edges, contour, t_view, similarity, result)
-            pose_centred = _pose_centred(model, t_view, similarity, camera)
+            result, t_view, similarity, pose_centred = _refit_from_other_starts(
+                model, loc, factor, camera, edges, contour, t_view, similarity, pose_centred,
+                result)
         moved = result.pose.t_m2c - pose_centred.t_m2c
         # The depth from the 2D scale is uncertain by several %, the image
         # position much less: a refinement that wanders sideways has left
@@ -379,7 +381,13 @@ def localize(
     located.sort(key=lambda loc: -loc.evidence)
     t4 = time.perf_counter()
     timing["views"] = (t4 - t3) * 1e3
-    edges = edges_future.result() if edges_future is not None else None
+    edges = None
+    if edges_future is not None:
+        if located:
+            edges = edges_future.result()
+        else:
+            # Nothing to refine: not waited for (nor built, if not started).
+            edges_future.cancel()
     # Pass 2: the final fit of the best locations, as many as detections are
     # wanted. One spare location more, in case the view search ranked a
     # false one first, found no more parts since the ranking keeps the view
