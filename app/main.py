@@ -16,6 +16,7 @@ from app.problems import install_fallback_handler, install_problem_handlers
 from app.routers import jobs, localize, objects, ops
 from app.settings import Settings
 from model_store import ModelStore
+from viewloc_core.localize import warm_up as localize_warm_up
 
 log = logging.getLogger("viewloc.app")
 
@@ -61,6 +62,8 @@ def create_app(
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        # Compiled kernels first: the first localization must not wait for them.
+        localize_warm_up()
         store = ModelStore(settings.data_dir, cache_size=settings.model_cache_size)
         runner = build_runner(store, settings, tasks)
         runner.start()

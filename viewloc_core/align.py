@@ -41,6 +41,7 @@ from viewloc_core.features import (
     wanted_bits,
 )
 from viewloc_core.model import ModelView, ObjectModel
+from viewloc_core.similarity_fit import fit_similarities
 
 F64 = NDArray[np.float64]
 
@@ -562,52 +563,11 @@ def extend_many(feats: ImageFeatures, sims: F64, pts: F64, theta: F64,
     """
     if len(feats.edge_xy) == 0:
         return sims
-    current = sims.copy()
-    tol = np.radians(tol_deg)
-    hh, pp = theta.shape
-    alive = np.ones(hh, bool)
-    for radius in radii:
-        uv = sim2.apply_many(current, pts)
-        found, nn = feats.nearest_edges(uv.reshape(-1, 2), radius)
-        found = found.reshape(hh, pp) & valid
-        nn = nn.reshape(hh, pp)
-        img_theta = feats.edge_theta[nn].astype(np.float64)
-        dth = np.abs(np.mod(theta + current[:, 2:3] - img_theta, np.pi))
-        dth = np.minimum(dth, np.pi - dth)
-        use = found & (dth < tol)
-        wgt = use.astype(np.float64)
-        nx, ny = -np.sin(img_theta), np.cos(img_theta)
-        dst = feats.edge_xy[nn].astype(np.float64)
-        if robust:
-            resid = np.abs((uv[..., 0] - dst[..., 0]) * nx + (uv[..., 1] - dst[..., 1]) * ny)
-            wgt *= np.where(resid <= 1.0, 1.0, 1.0 / np.maximum(resid, 1e-9))
-        sx, sy = pts[..., 0], pts[..., 1]
-        A = np.stack([nx * sx + ny * sy, -nx * sy + ny * sx, nx, ny], axis=-1)
-        rhs = nx * dst[..., 0] + ny * dst[..., 1]
-        # Batched matrix products (a three-operand einsum is several times slower).
-        Aw = A * wgt[..., None]
-        AtA = np.matmul(Aw.transpose(0, 2, 1), A)
-        Atb = np.matmul(Aw.transpose(0, 2, 1), rhs[..., None])[..., 0]
-        ok = use.sum(axis=1) >= 6
-        AtA[~ok] = np.eye(4)
-        det = np.abs(np.linalg.det(AtA))
-        if robust:
-            # Degenerate when the edges constrain fewer than 4 directions
-            # (one line), relative to the system's own size.
-            trace = np.maximum(np.trace(AtA, axis1=1, axis2=2), 1e-12)
-            ok &= det >= 1e-9 * trace**4
-        else:
-            ok &= det > 1e-9
-        AtA[~ok] = np.eye(4)
-        sol = np.linalg.solve(AtA, Atb[..., None])[..., 0]
-        scale = np.hypot(sol[:, 0], sol[:, 1])
-        ok &= (scale > 0.5 * current[:, 3]) & (scale < 2.0 * current[:, 3])
-        new = np.stack([sol[:, 2], sol[:, 3], np.arctan2(sol[:, 1], sol[:, 0]), scale], axis=1)
-        if robust:
-            ok &= np.isfinite(new).all(axis=1) & alive
-            alive = ok
-        current[ok] = new[ok]
-    return current
+    return fit_similarities(
+        np.ascontiguousarray(sims, np.float64), np.ascontiguousarray(pts, np.float64),
+        np.ascontiguousarray(theta, np.float64), np.ascontiguousarray(valid, np.bool_),
+        feats.nearest_edge, feats.edge_distance, feats.edge_xy, feats.edge_theta,
+        np.asarray(radii, np.float64), float(np.radians(tol_deg)), robust)
 
 
 def log_probability(view_data: ModelView, feats: ImageFeatures, sim: F64) -> tuple[float, int]:

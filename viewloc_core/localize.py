@@ -21,6 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from viewloc_core import similarity as sim2
+from viewloc_core import similarity_fit
 from viewloc_core.align import (
     AlignConfig,
     Match2D,
@@ -117,6 +118,12 @@ _EDGE_POOL = ThreadPoolExecutor(max_workers=2, thread_name_prefix="viewloc-edges
 
 
 _INDEX_CACHE: weakref.WeakKeyDictionary[ObjectModel, ModelIndex] = weakref.WeakKeyDictionary()
+
+
+def warm_up() -> None:
+    """Compile the pipeline's numba kernels now (a service calls this at
+    start-up, so that no request waits for the compiler)."""
+    similarity_fit.warm_up()
 
 
 def model_index(model: ObjectModel) -> ModelIndex:
