@@ -41,6 +41,7 @@ from viewloc_core.features import (
     wanted_bits,
 )
 from viewloc_core.model import ModelView, ObjectModel
+from viewloc_core.seeding import seed_similarities
 from viewloc_core.similarity_fit import fit_similarities
 
 F64 = NDArray[np.float64]
@@ -314,25 +315,14 @@ def _pairings(index: ModelIndex, feats: ImageFeatures, config: AlignConfig) -> t
 
 
 def _seeds(index: ModelIndex, feats: ImageFeatures, k: NDArray[np.int64], j: NDArray[np.int64],
-           config: AlignConfig) -> tuple[F64, NDArray[np.int64], NDArray[np.bool_]]:
-    """Similarity (N, 4) implied by each pairing; parallel pairs give two (α, α+π)."""
+           config: AlignConfig) -> tuple[F64, NDArray[np.int64]]:
+    """Similarity (M, 4) implied by each pairing whose scale is in range, and
+    the pairing each came from; parallel pairs give two (α, α+π)."""
     g = feats.grouped
-    angle = g.theta[k].astype(np.float64) - index.theta[j]
-    scale = g.scale[k].astype(np.float64) / index.scale[j]
-    parallel = index.kind[j] == KIND_PARALLEL
-    # A parallel pair's orientation is only known modulo π.
-    k = np.concatenate([k, k[parallel]])
-    j = np.concatenate([j, j[parallel]])
-    angle = np.concatenate([angle, angle[parallel] + np.pi])
-    scale = np.concatenate([scale, scale[parallel]])
-    c, s = scale * np.cos(angle), scale * np.sin(angle)
-    mx, my = index.xy[j, 0], index.xy[j, 1]
-    ix, iy = g.xy[k, 0].astype(np.float64), g.xy[k, 1].astype(np.float64)
-    tx = ix - (c * mx - s * my)
-    ty = iy - (s * mx + c * my)
-    sims = np.stack([tx, ty, sim2.wrap_angle(angle), scale], axis=1)
-    ok = (scale >= config.min_scale) & (scale <= config.max_scale)
-    return sims, j, ok
+    return seed_similarities(
+        g.xy, g.theta, g.scale, index.xy, index.theta, index.scale,
+        index.kind == KIND_PARALLEL, np.ascontiguousarray(k, np.int64),
+        np.ascontiguousarray(j, np.int64), config.min_scale, config.max_scale)
 
 
 def coverage(
@@ -713,9 +703,8 @@ def align(
         keep = np.argpartition(-(w + _log_rarity(feats)[k]), config.max_pairings)
         keep = keep[: config.max_pairings]
         k, j, w = k[keep], j[keep], w[keep]
-    sims, j2, ok = _seeds(index, feats, k, j, config)
-    w2 = np.concatenate([w, w[index.kind[j] == KIND_PARALLEL]])
-    sims, j2, w2 = sims[ok], j2[ok], w2[ok]
+    sims, pairing = _seeds(index, feats, k, j, config)
+    j2, w2 = j[pairing], w[pairing]
     if len(sims) == 0:
         return []
     # Two votes, united: per location pooled over views (finds objects whose

@@ -20,8 +20,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from viewloc_core import seeding, similarity_fit
 from viewloc_core import similarity as sim2
-from viewloc_core import similarity_fit
 from viewloc_core.align import (
     AlignConfig,
     Match2D,
@@ -124,6 +124,7 @@ def warm_up() -> None:
     """Compile the pipeline's numba kernels now (a service calls this at
     start-up, so that no request waits for the compiler)."""
     similarity_fit.warm_up()
+    seeding.warm_up()
 
 
 def model_index(model: ObjectModel) -> ModelIndex:
