@@ -40,6 +40,7 @@ from viewloc_core.features import (
     wanted_bits,
 )
 from viewloc_core.model import ObjectModel, cached_per_model
+from viewloc_core.sample_evidence import lay_over as lay_over_samples
 
 F64 = NDArray[np.float64]
 
@@ -234,77 +235,44 @@ def score_views(
         better than chance; independent of the object's size in the image.
     """
     if subset is None:
-        px, py = templates.px[views], templates.py[views]
-        bins, valid = templates.bins8[views], templates.valid[views]
+        px, py, bins, valid, rows = (templates.px, templates.py, templates.bins8,
+                                     templates.valid, views)
     else:
-        rows = views[:, None]
-        px, py = templates.px[rows, subset], templates.py[rows, subset]
-        bins, valid = templates.bins8[rows, subset], templates.valid[rows, subset]
-    inside, hit, b = _lay_over(feats, px, py, bins, valid, sims)
-    llr, log_hit = _sample_llr(inside, hit, b, chance)
-    n_valid = np.maximum(valid.sum(axis=1), 1)
-    # The evidence had every sample in the image found its edge.
-    found_table = np.concatenate([np.zeros(ORIENTATION_BINS), log_hit])
-    llr_all_found = found_table[inside.astype(np.uint8) * ORIENTATION_BINS + b].sum(axis=1)
-    return (llr * (templates.length_px[views] * sims[:, 3]), hit.sum(axis=1) / n_valid,
+        gather = views[:, None]
+        px, py = templates.px[gather, subset], templates.py[gather, subset]
+        bins, valid = templates.bins8[gather, subset], templates.valid[gather, subset]
+        rows = np.arange(len(views))
+    llr, hits, n_valid, llr_all_found = _lay_over(feats, px, py, bins, valid, rows, sims,
+                                                  chance)
+    return (llr * (templates.length_px[views] * sims[:, 3]), hits / np.maximum(n_valid, 1),
             llr / np.maximum(llr_all_found, 1e-9))
 
 
 def _score_coarse(feats: ImageFeatures, templates: ViewTemplates, views: NDArray[np.int64],
                   sims: F64, chance: F64) -> F64:
     """The log-likelihood ratio of :func:`score_views` on each view's coarse subset."""
-    inside, hit, b = _lay_over(feats, templates.coarse_px[views], templates.coarse_py[views],
-                               templates.coarse_bins8[views], templates.coarse_valid[views], sims)
-    llr, _ = _sample_llr(inside, hit, b, chance)
+    llr = _lay_over(feats, templates.coarse_px, templates.coarse_py, templates.coarse_bins8,
+                    templates.coarse_valid, views, sims, chance)[0]
     return llr * (templates.length_px[views] * sims[:, 3])
 
 
 def _lay_over(feats: ImageFeatures, px: NDArray[np.float32], py: NDArray[np.float32],
-              bins: NDArray[np.uint8], valid: NDArray[np.bool_], sims: F64
-              ) -> tuple[NDArray[np.bool_], NDArray[np.bool_], NDArray[np.uint8]]:
-    """Gathered samples, (H, P) coordinates, bins and validity, laid over the image.
-
-    Returns
-    -------
-    inside : (H, P) bool
-        Valid and inside the image.
-    hit : (H, P) bool
-        Inside and on an image edge of its (turned) orientation.
-    bins : (H, P) uint8
-        Orientation bins turned by each similarity's in-plane angle.
-    """
-    h, w = feats.shape
-    c = (sims[:, 3] * np.cos(sims[:, 2]))[:, None].astype(np.float32)
-    sn = (sims[:, 3] * np.sin(sims[:, 2]))[:, None].astype(np.float32)
-    u = np.rint(c * px - sn * py + sims[:, 0:1].astype(np.float32)).astype(np.int32)
-    v = np.rint(sn * px + c * py + sims[:, 1:2].astype(np.float32)).astype(np.int32)
-    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h) & valid
-    flat = v * w
-    flat += u
-    flat[~inside] = 0
-    got = feats.orientation_bits.ravel()[flat]
-    # The samples' orientation bins turn with the in-plane angle.
-    turn = orientation_turn(sims[:, 2]).astype(np.uint8)
-    b = bins + turn[:, None]
-    b &= ORIENTATION_BINS - 1
-    hit = (got & _WANTED[b]) != 0
-    hit &= inside
-    return inside, hit, b
-
-
-def _sample_llr(inside: NDArray[np.bool_], hit: NDArray[np.bool_], bins: NDArray[np.uint8],
-                chance: F64) -> tuple[F64, F64]:
-    """(H,) log-likelihood ratio summed over samples (unweighted), and the
-    per-bin log odds of a hit, ``log(q / b_o)``."""
+              bins: NDArray[np.uint8], valid: NDArray[np.bool_], rows: NDArray[np.int64],
+              sims: F64, chance: F64) -> tuple[F64, NDArray[np.int64], NDArray[np.int64], F64]:
+    """Template rows ``rows`` of (T, P) samples laid over the image by (H, 4)
+    similarities: :func:`viewloc_core.sample_evidence.lay_over`'s llr, hits,
+    valid samples and llr had every sample found its edge, per pair."""
     log_hit = np.log(TRUE_HIT_RATE / chance)
     log_miss = np.log((1.0 - TRUE_HIT_RATE) / (1.0 - chance))
-    # One table per outcome: outside (unknown, adds nothing), missed, hit.
-    # Samples outside the image are unknown, not missing.
-    table = np.concatenate([np.zeros(ORIENTATION_BINS), log_miss, log_hit])
-    state = inside.astype(np.uint8)
-    state += hit
-    state *= ORIENTATION_BINS
-    return table[state + bins].sum(axis=1), log_hit
+    # The similarity in float32, the precision the positions were tuned in.
+    cos_scale = (sims[:, 3] * np.cos(sims[:, 2])).astype(np.float32)
+    sin_scale = (sims[:, 3] * np.sin(sims[:, 2])).astype(np.float32)
+    # The samples' orientation bins turn with the in-plane angle.
+    turn = orientation_turn(sims[:, 2]).astype(np.uint8)
+    return lay_over_samples(
+        feats.orientation_bits, _WANTED, px, py, bins, valid,
+        np.ascontiguousarray(rows, np.int64), cos_scale, sin_scale,
+        sims[:, 0].astype(np.float32), sims[:, 1].astype(np.float32), turn, log_hit, log_miss)
 
 
 def best_member(

@@ -1,0 +1,36 @@
+"""Template samples laid over an orientation map: hits, misses, outside, padding."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from viewloc_core.features import ORIENTATION_BINS, wanted_bits
+from viewloc_core.sample_evidence import lay_over
+
+
+def test_hits_misses_outside_and_padding_each_count_as_they_should():
+    bits = np.zeros((20, 30), np.uint16)
+    bits[5, 10] = 1 << 3  # an edge of bin 3 at (10, 5)
+    wanted = wanted_bits(np.arange(ORIENTATION_BINS)).astype(np.uint16)
+    # One template: a sample on the edge, one on empty image, one outside,
+    # one padding. Scale 2, no turn, shifted by (4, 1).
+    px = np.array([[3.0, 5.0, 40.0, 3.0]], np.float32)
+    py = np.array([[2.0, 2.0, 2.0, 2.0]], np.float32)
+    bins = np.array([[3, 3, 3, 3]], np.uint8)
+    valid = np.array([[True, True, True, False]])
+    log_hit = np.arange(ORIENTATION_BINS) + 1.0
+    log_miss = -np.arange(ORIENTATION_BINS) - 0.5
+    one = np.ones(1, np.float32)
+    llr, hits, n_valid, best = lay_over(
+        bits, wanted, px, py, bins, valid, np.zeros(1, np.int64), 2 * one, 0 * one, 4 * one,
+        one, np.zeros(1, np.uint8), log_hit, log_miss)
+    assert list(hits) == [1] and list(n_valid) == [3]
+    assert llr[0] == log_hit[3] + log_miss[3]
+    assert best[0] == 2 * log_hit[3]
+    # Turned by one bin, the sample's bin 4 is still confirmed by a bin-3
+    # edge (the spread map's tolerance), at bin 4's odds.
+    llr_t, hits_t, _, _ = lay_over(
+        bits, wanted, px, py, bins, valid, np.zeros(1, np.int64), 2 * one, 0 * one, 4 * one,
+        one, np.ones(1, np.uint8), log_hit, log_miss)
+    assert list(hits_t) == [int(wanted[4] & bits[5, 10] != 0)]
+    assert llr_t[0] == (log_hit[4] if hits_t[0] else log_miss[4]) + log_miss[4]

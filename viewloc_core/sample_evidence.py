@@ -1,0 +1,109 @@
+"""Edge samples of view templates laid over an image and scored, compiled.
+
+The view search (:mod:`viewloc_core.view_search`) scores thousands of
+(training view, similarity) pairs per image location: each edge sample is
+mapped into the image, looked up in the spread orientation map and adds the
+log-likelihood ratio of a hit or a miss of its (turned) orientation bin. In
+array form that is a dozen passes over (pairs x samples) temporaries; here it
+is one pass with no temporaries. Positions are computed in float32 exactly as
+the array form did (the rounding to a pixel decides hits).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+from numpy.typing import NDArray
+
+F64 = NDArray[np.float64]
+
+
+@njit(cache=True, nogil=True)
+def lay_over(
+    bits: NDArray[np.uint16], wanted: NDArray[np.uint16],
+    px: NDArray[np.float32], py: NDArray[np.float32], bins: NDArray[np.uint8],
+    valid: NDArray[np.bool_], rows: NDArray[np.int64],
+    cos_scale: NDArray[np.float32], sin_scale: NDArray[np.float32],
+    x: NDArray[np.float32], y: NDArray[np.float32], turn: NDArray[np.uint8],
+    log_hit: F64, log_miss: F64,
+) -> tuple[F64, NDArray[np.int64], NDArray[np.int64], F64]:  # pragma: no cover - compiled
+    """Evidence of H template rows laid over an image by H similarities.
+
+    Parameters
+    ----------
+    bits : (h, w) uint16
+        Spread orientation map of the image (bit ``b``: an edge of bin ``b``).
+    wanted : (B,) uint16
+        Bits that confirm a sample of each orientation bin.
+    px, py : (T, P) float32
+        Sample positions of the templates, template pixels.
+    bins : (T, P) uint8
+        Their orientation bins.
+    valid : (T, P) bool
+        Real samples (not padding).
+    rows : (H,) int64
+        Template row of each pair.
+    cos_scale, sin_scale : (H,) float32
+        ``s cos α`` and ``s sin α`` of each similarity.
+    x, y : (H,) float32
+        Its translation, image pixels.
+    turn : (H,) uint8
+        Orientation bins its angle turns the samples by.
+    log_hit, log_miss : (B,) float64
+        Log-likelihood ratio of a hit and of a miss per orientation bin.
+
+    Returns
+    -------
+    llr : (H,) float64
+        Summed over the samples inside the image (outside ones are unknown).
+    hits : (H,) int64
+        Samples that found an edge of their orientation.
+    n_valid : (H,) int64
+        Valid samples.
+    llr_all_found : (H,) float64
+        The llr had every sample inside the image found its edge.
+    """
+    n_pairs = len(rows)
+    n_pts = px.shape[1]
+    h, w = bits.shape
+    n_bins = len(wanted)
+    llr = np.zeros(n_pairs)
+    hits = np.zeros(n_pairs, np.int64)
+    n_valid = np.zeros(n_pairs, np.int64)
+    best = np.zeros(n_pairs)
+    for i in range(n_pairs):
+        t = rows[i]
+        c, s, tx, ty, tn = cos_scale[i], sin_scale[i], x[i], y[i], turn[i]
+        acc = 0.0
+        acc_best = 0.0
+        n_hit = 0
+        count = 0
+        for p in range(n_pts):
+            if not valid[t, p]:
+                continue
+            count += 1
+            u = int(np.rint(c * px[t, p] - s * py[t, p] + tx))
+            v = int(np.rint(s * px[t, p] + c * py[t, p] + ty))
+            if u < 0 or u >= w or v < 0 or v >= h:
+                continue
+            b = (bins[t, p] + tn) & (n_bins - 1)
+            acc_best += log_hit[b]
+            if bits[v, u] & wanted[b]:
+                acc += log_hit[b]
+                n_hit += 1
+            else:
+                acc += log_miss[b]
+        llr[i] = acc
+        hits[i] = n_hit
+        n_valid[i] = count
+        best[i] = acc_best
+    return llr, hits, n_valid, best
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's cache) for the types the view search passes."""
+    f32 = np.zeros(1, np.float32)
+    lay_over(np.zeros((1, 1), np.uint16), np.ones(16, np.uint16), np.zeros((1, 1), np.float32),
+             np.zeros((1, 1), np.float32), np.zeros((1, 1), np.uint8), np.ones((1, 1), np.bool_),
+             np.zeros(1, np.int64), f32, f32, f32, f32, np.zeros(1, np.uint8), np.zeros(16),
+             np.zeros(16))
