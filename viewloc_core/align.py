@@ -41,6 +41,7 @@ from viewloc_core.features import (
     wanted_bits,
 )
 from viewloc_core.model import ModelView, ObjectModel
+from viewloc_core.seed_votes import bin_supports, peak_bins
 from viewloc_core.seeding import seed_similarities
 from viewloc_core.similarity_fit import fit_similarities
 
@@ -404,24 +405,9 @@ def _bin_keys(views: NDArray[np.int64], sims: F64, config: AlignConfig,
 def _strongest_seeds_of_best_bins(keys: NDArray[np.int64], vote: F64,
                                   n_bins: int) -> NDArray[np.int64]:
     """Index of the strongest seed in each of the ``n_bins`` best-supported bins, best first."""
-    if len(keys) == 0:
-        return np.zeros(0, np.int64)
-    # Bins numbered 0, 1, ... in key order, as np.unique would. The supports
-    # are summed over the seeds in index order (the bincount of the
-    # original), so no stable (slow) sort is needed.
-    order = np.argsort(keys)
-    sorted_keys = keys[order]
-    first = np.r_[True, sorted_keys[1:] != sorted_keys[:-1]]
-    bin_sorted = np.cumsum(first) - 1
-    start = np.flatnonzero(first)
-    bin_of = np.empty(len(keys), np.int64)
-    bin_of[order] = bin_sorted
-    support = np.bincount(bin_of, weights=vote)
-    # The strongest seed of a bin, the lowest index among equals.
-    vote_sorted = vote[order]
-    top = np.maximum.reduceat(vote_sorted, start)
-    at_top = np.where(vote_sorted == top[bin_sorted], order, len(keys))
-    strongest = np.minimum.reduceat(at_top, start)
+    support, strongest = bin_supports(np.ascontiguousarray(keys, np.int64),
+                                      np.ascontiguousarray(vote, np.float64),
+                                      np.arange(len(keys), dtype=np.int64))
     return strongest[np.argsort(-support)[:n_bins]]
 
 
@@ -479,23 +465,21 @@ def _vote_hypotheses(views: NDArray[np.int64], sims: F64, vote: F64,
     py, px = np.nonzero(peaks)
     order = np.argsort(-acc[py, px])[: config.max_peaks]
     centres = np.stack([(px[order] - 2 + 0.5) * cell, (py[order] - 2 + 0.5) * cell], axis=1)
-    keys = _bin_keys(views, sims, config, False)
-    # Seeds sorted by grid column (a radix sort on int16): a peak, at the
-    # centre of column p, is within reach of seeds in columns p-2..p+2 only
-    # (the reach of two cells ends mid-column, far from rounding).
-    reach = 2.0 * cell
-    column = np.clip(gx, -3, gw + 2).astype(np.int16)
-    by_column = np.argsort(column, kind="stable")
-    column_sorted = column[by_column]
+    # A peak, at the centre of column p, is within reach of seeds in columns
+    # p-2..p+2 only (the reach of two cells ends mid-column, far from rounding).
+    support, strongest, bins_per_peak = peak_bins(
+        np.ascontiguousarray(sims[:, 0]), np.ascontiguousarray(sims[:, 1]),
+        np.clip(gx, -3, gw + 2), _bin_keys(views, sims, config, False),
+        np.ascontiguousarray(vote, np.float64), np.ascontiguousarray(centres, np.float64),
+        px[order].astype(np.int64), 2.0 * cell)
     picked = []
-    for c, p in zip(centres, px[order], strict=True):
-        lo, hi = (int(np.searchsorted(column_sorted, p - 2, side="left")),
-                  int(np.searchsorted(column_sorted, p + 2, side="right")))
-        strip = np.sort(by_column[lo:hi])
-        near = strip[np.hypot(sims[strip, 0] - c[0], sims[strip, 1] - c[1]) < reach]
-        if len(near):
-            picked.append(near[_strongest_seeds_of_best_bins(
-                keys[near], vote[near], config.hypotheses_per_peak)])
+    start = 0
+    for count in bins_per_peak.tolist():
+        if count:
+            peak = slice(start, start + count)
+            picked.append(strongest[peak][np.argsort(-support[peak])
+                                          [: config.hypotheses_per_peak]])
+        start += count
     best = np.concatenate(picked) if picked else np.zeros(0, np.int64)
     return views[best], sims[best]
 
