@@ -21,7 +21,7 @@ give the same features.
 from __future__ import annotations
 
 import threading
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
@@ -278,7 +278,7 @@ def extract_features(
     grey8 = np.clip((smooth - lo_v) * (255.0 / max(hi_v - lo_v, 1e-6)), 0, 255).astype(np.uint8)
     # LSD needs nothing of what follows (its segments are masked afterwards)
     # and OpenCV releases the GIL: it runs on the other core meanwhile.
-    lines = _LSD_POOL.submit(_detect_lines, grey8)
+    lines = _POOL.submit(_detect_lines, grey8)
 
     # Canny on the gradient normalised by the image's own gradient scale keeps
     # the edge map independent of exposure and bit depth.
@@ -312,22 +312,17 @@ def extract_features(
         segment_mask = away if mask is None else (mask & away)
         untextured = ~texture
         pixel_xy, direction = pixel_xy[untextured], direction[untextured]
+    # The edge map is final: its distance transform (OpenCV, without the GIL)
+    # runs on another core while the arc candidates are traced.
+    nearest_job = _POOL.submit(_nearest_edge_maps, edges) if len(pixel_xy) else None
     # Edge tangent is perpendicular to the gradient; modulo π for polarity.
     edge_theta = np.asarray((direction + np.pi / 2.0) % np.pi, np.float32)
     edge_xy = pixel_xy.astype(np.float32)
 
     bits = orientation_bits_map(edge_xy, edge_theta, (h, w), spread_px)
-    if len(edge_xy):
-        # Labels of DIST_LABEL_PIXEL number the zero pixels in raster order,
-        # the order of np.nonzero above, so label - 1 indexes edge_xy.
-        dist, labels = cv2.distanceTransformWithLabels(
-            (edges == 0).astype(np.uint8), cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL
-        )
-        nearest = (labels - 1).astype(np.int32)
-    else:
-        dist = np.full((h, w), np.inf, np.float32)
-        nearest = np.full((h, w), -1, np.int32)
-    arcs = _arcs(edges, edge_xy, edge_theta, nearest, dist, config)
+    start_circles = _arc_candidates(edges, config)
+    nearest, dist = _nearest_edge_result(nearest_job, edges)
+    arcs = _arcs_on_edges(start_circles, edge_xy, edge_theta, nearest, dist, config)
     segments = _segments(lines.result(), config, segment_mask)
     grouped = _concat_parts([_group(segments, config), arcs])
     return ImageFeatures(edge_xy, edge_theta, segments, grouped, bits, nearest, dist, (h, w))
@@ -554,9 +549,51 @@ def _empty_features(shape: tuple[int, int]) -> ImageFeatures:
 #: concurrent requests in a thread pool).
 _LSD_PER_THREAD = threading.local()
 
-#: Threads that run LSD beside the rest of the extraction (two: concurrent
-#: requests of the service need not queue behind one another's LSD).
-_LSD_POOL = ThreadPoolExecutor(max_workers=2, thread_name_prefix="viewloc-lsd")
+#: Threads that run OpenCV work (LSD, the distance transform) beside the rest
+#: of the extraction (two: concurrent requests of the service need not queue
+#: behind one another's LSD). No job waits for another: none can deadlock.
+_POOL = ThreadPoolExecutor(max_workers=2, thread_name_prefix="viewloc-features")
+
+
+def _nearest_edge_maps(edges: NDArray[np.uint8]) -> tuple[NDArray[np.int32], F32]:
+    """Nearest edge pixel of every pixel and its distance.
+
+    Parameters
+    ----------
+    edges : (H, W) uint8
+        Edge map (non-zero on edges), at least one edge.
+
+    Returns
+    -------
+    nearest : (H, W) int32
+        Index of the nearest edge pixel in the raster order of
+        :func:`_edge_pixels`.
+    distance : (H, W) float32
+        Its distance, pixels.
+    """
+    # The transform measures the distance to zero pixels: the edges, as 0
+    # among 255s (one OpenCV pass instead of a comparison and a conversion).
+    off_edge = cv2.threshold(edges, 0, 255, cv2.THRESH_BINARY_INV)[1]
+    distance, labels = cv2.distanceTransformWithLabels(
+        off_edge, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL)
+    # DIST_LABEL_PIXEL numbers the zero pixels from 1 in raster order, so
+    # label - 1 indexes the edge pixels.
+    nearest = np.asarray(labels, np.int32)
+    nearest -= 1
+    return nearest, np.asarray(distance, np.float32)
+
+
+def _nearest_edge_result(job: Future[tuple[NDArray[np.int32], F32]] | None,
+                         edges: NDArray[np.uint8]) -> tuple[NDArray[np.int32], F32]:
+    """The maps of :func:`_nearest_edge_maps` submitted as ``job`` (None when
+    there is no edge: index -1 and infinite distance everywhere)."""
+    if job is None:
+        return np.full(edges.shape, -1, np.int32), np.full(edges.shape, np.inf, np.float32)
+    if job.cancel():
+        # Not started (the threads are busy with other requests): waiting
+        # for them would be slower than computing here.
+        return _nearest_edge_maps(edges)
+    return job.result()
 
 
 def _detect_lines(grey8: NDArray[np.uint8]) -> NDArray[np.float32] | None:
@@ -768,9 +805,9 @@ _ARC_MAX_CANDIDATES = 64
 _ARC_CLOSED = np.radians(330.0)
 
 
-def _arcs(edges: NDArray[np.uint8], edge_xy: F32, edge_theta: F32,
-          nearest: NDArray[np.int32], edge_distance: F32, config: FeatureConfig) -> _Parts:
-    """Circular arcs on the edge map.
+def _arc_candidates(edges: NDArray[np.uint8], config: FeatureConfig) -> F64:
+    """Starting circles for the circular arcs on the edge map (the arcs are
+    :func:`_arcs_on_edges` of these).
 
     The edge map, dilated by one pixel to bridge the gaps Canny leaves on
     steep curves, is traced into closed pixel chains (``cv2.findContours``
@@ -792,24 +829,20 @@ def _arcs(edges: NDArray[np.uint8], edge_xy: F32, edge_theta: F32,
     ----------
     edges : (H, W) uint8
         Canny edge map (non-zero on edges).
-    edge_xy : (E, 2) float32
-        Its edge pixels.
-    edge_theta : (E,) float32
-        Their tangent orientation modulo π, radians.
-    nearest, edge_distance : (H, W) int32, float32
-        Index of the nearest edge pixel and its distance, per pixel.
     config : FeatureConfig
 
     Returns
     -------
-    kind, xy, theta, scale, attrs as in :class:`GroupedFeatures`.
+    (K, 3) float64
+        ``cx, cy, r`` of each starting circle, pixels, best supported first.
     """
+    no_circles = np.zeros((0, 3))
     traced = cv2.dilate(edges, np.ones((3, 3), np.uint8))
     contours, _ = cv2.findContours(traced, cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)
     min_points = 4 * _ARC_STEP + 8
     chains = [c.reshape(-1, 2) for c in contours if len(c) >= min_points]
     if not chains:
-        return _no_parts()
+        return no_circles
     lengths = np.array([len(c) for c in chains], np.int64)
     starts = np.cumsum(lengths) - lengths
     pts = np.concatenate(chains).astype(np.float64)
@@ -834,7 +867,7 @@ def _arcs(edges: NDArray[np.uint8], edge_xy: F32, edge_theta: F32,
     pts, piece = pts[keep], _drop_small(np.cumsum(boundary)[keep] - 1, 10)
     pts, piece = pts[piece >= 0], piece[piece >= 0]
     if len(pts) == 0:
-        return _no_parts()
+        return no_circles
 
     fit = _fit_circles(pts, piece)
     good = _circle_ok(fit, config, np.radians(30.0), 1.5)
@@ -851,7 +884,7 @@ def _arcs(edges: NDArray[np.uint8], edge_xy: F32, edge_theta: F32,
     cgood = _circle_ok(cfit, config, np.radians(45.0), 1.5)
     cand = np.concatenate([fit[good], cfit[cgood]])
     if len(cand) == 0:
-        return _no_parts()
+        return no_circles
 
     # Every candidate is refitted on the edge pixels along its circle; pieces
     # of one circle converge on it and the duplicates are dropped at the end
@@ -860,8 +893,7 @@ def _arcs(edges: NDArray[np.uint8], edge_xy: F32, edge_theta: F32,
     # dilated map) are dropped here.
     cand = _prune_circles(cand[np.argsort(-cand[:, 4], kind="stable")], config, 2.5)
     cand = cand[np.isfinite(cand[:, 2])]
-    start_circles = cand[:_ARC_MAX_CANDIDATES, :3]
-    return _arcs_on_edges(start_circles, edge_xy, edge_theta, nearest, edge_distance, config)
+    return np.asarray(cand[:_ARC_MAX_CANDIDATES, :3], np.float64)
 
 
 def _arcs_on_edges(circles: F64, edge_xy: F32, edge_theta: F32, nearest: NDArray[np.int32],
@@ -873,6 +905,22 @@ def _arcs_on_edges(circles: F64, edge_xy: F32, edge_theta: F32, nearest: NDArray
     the perimeter, not to the number of edges); those close to the circle and
     tangent to it are kept and the circle refitted, three times with a
     narrowing band.
+
+    Parameters
+    ----------
+    circles : (K, 3) float64
+        Starting circles ``cx, cy, r``, pixels (:func:`_arc_candidates`).
+    edge_xy : (E, 2) float32
+        The edge pixels.
+    edge_theta : (E,) float32
+        Their tangent orientation modulo π, radians.
+    nearest, edge_distance : (H, W) int32, float32
+        Index of the nearest edge pixel and its distance (pixels), per pixel.
+    config : FeatureConfig
+
+    Returns
+    -------
+    kind, xy, theta, scale, attrs as in :class:`GroupedFeatures`.
     """
     exy = edge_xy.astype(np.float64)
     eth = edge_theta.astype(np.float64)
