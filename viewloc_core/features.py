@@ -311,7 +311,8 @@ def extract_features(
         away = cv2.erode(not_texture, np.ones((5, 5), np.uint8)) > 0
         segment_mask = away if mask is None else (mask & away)
         untextured = ~texture
-        pixel_xy, direction = pixel_xy[untextured], direction[untextured]
+        pixel_xy = np.compress(untextured, pixel_xy, axis=0)
+        direction = direction[untextured]
     # The edge map is final: its distance transform (OpenCV, without the GIL)
     # runs on another core while the arc candidates are traced.
     nearest_job = _POOL.submit(_nearest_edge_maps, edges) if len(pixel_xy) else None
@@ -849,23 +850,24 @@ def _arc_candidates(edges: NDArray[np.uint8], config: FeatureConfig) -> F64:
     start = np.repeat(starts, lengths)
     length = np.repeat(lengths, lengths)
     pos = np.arange(len(pts)) - start
-
-    def along(offset: int) -> NDArray[np.int64]:
-        return np.asarray(start + (pos + offset) % length, np.int64)
-
-    d = pts[along(_ARC_STEP)] - pts[along(-_ARC_STEP)]
+    ahead = _chain_index(start, pos + _ARC_STEP, length)
+    behind = _chain_index(start, pos - _ARC_STEP, length)
+    # Rows of (N, 2) arrays are gathered with np.take and np.compress here
+    # and below: numpy's fancy and boolean indexing of them is several times
+    # slower.
+    d = np.take(pts, ahead, axis=0) - np.take(pts, behind, axis=0)
     phi = np.arctan2(d[:, 1], d[:, 0])
-    turn = np.abs(_wrap_pi(phi[along(_ARC_STEP)] - phi[along(-_ARC_STEP)]))
+    turn = np.abs(_wrap_pi(phi[ahead] - phi[behind]))
     corner = turn > _ARC_CORNER_TURN
     # Start each chain at its first corner so that no piece wraps around.
     first = np.minimum.reduceat(np.where(corner, pos, length), starts)
     first = np.where(first < lengths, first, 0)
-    order = start + (pos + np.repeat(first, lengths)) % length
-    pts, corner = pts[order], corner[order]
+    order = _chain_index(start, pos + np.repeat(first, lengths), length)
+    pts, corner = np.take(pts, order, axis=0), corner[order]
     boundary = corner | (pos == 0)
     keep = ~corner
-    pts, piece = pts[keep], _drop_small(np.cumsum(boundary)[keep] - 1, 10)
-    pts, piece = pts[piece >= 0], piece[piece >= 0]
+    pts, piece = np.compress(keep, pts, axis=0), _drop_small(np.cumsum(boundary)[keep] - 1, 10)
+    pts, piece = np.compress(piece >= 0, pts, axis=0), piece[piece >= 0]
     if len(pts) == 0:
         return no_circles
 
@@ -876,7 +878,7 @@ def _arc_candidates(edges: NDArray[np.uint8], config: FeatureConfig) -> F64:
     bad = ~good[piece]
     chunk = _drop_small(np.unique(piece[bad] * 100000 + rank[bad] // _ARC_CHUNK,
                                   return_inverse=True)[1], _ARC_CHUNK // 2)
-    cpts = pts[bad][chunk >= 0]
+    cpts = np.compress(chunk >= 0, np.compress(bad, pts, axis=0), axis=0)
     chunk = chunk[chunk >= 0]
     # Chunks are short: ask for more curvature, or a pixel jog in a straight
     # line fits a wide circle.
@@ -894,6 +896,30 @@ def _arc_candidates(edges: NDArray[np.uint8], config: FeatureConfig) -> F64:
     cand = _prune_circles(cand[np.argsort(-cand[:, 4], kind="stable")], config, 2.5)
     cand = cand[np.isfinite(cand[:, 2])]
     return np.asarray(cand[:_ARC_MAX_CANDIDATES, :3], np.float64)
+
+
+def _chain_index(start: NDArray[np.int64], pos: NDArray[np.int64],
+                 length: NDArray[np.int64]) -> NDArray[np.int64]:
+    """Index ``start + pos mod length`` of points along closed chains.
+
+    Parameters
+    ----------
+    start, length : (N,) int64
+        First index and length of the chain of each query (in points).
+    pos : (N,) int64
+        Position along that chain, in ``[-length, 2 length)``.
+
+    Returns
+    -------
+    (N,) int64
+    """
+    # One conditional wrap each way: numpy's integer modulo is several times
+    # slower on the tens of thousands of contour points of a busy image.
+    index = pos.copy()
+    np.subtract(index, length, out=index, where=index >= length)
+    np.add(index, length, out=index, where=index < 0)
+    index += start
+    return index
 
 
 def _arcs_on_edges(circles: F64, edge_xy: F32, edge_theta: F32, nearest: NDArray[np.int32],
@@ -923,6 +949,7 @@ def _arcs_on_edges(circles: F64, edge_xy: F32, edge_theta: F32, nearest: NDArray
     kind, xy, theta, scale, attrs as in :class:`GroupedFeatures`.
     """
     exy = edge_xy.astype(np.float64)
+    ex, ey = exy[:, 0].copy(), exy[:, 1].copy()  # contiguous: faster to gather
     eth = edge_theta.astype(np.float64)
     h, w = nearest.shape
     current = circles
@@ -948,8 +975,8 @@ def _arcs_on_edges(circles: F64, edge_xy: F32, edge_theta: F32, nearest: NDArray
         # Neighbouring steps often find the same pixel.
         pair = pair[np.r_[True, pair[1:] != pair[:-1]]]
         label, use = pair // len(exy), pair % len(exy)
-        dx = exy[use, 0] - cx[label]
-        dy = exy[use, 1] - cy[label]
+        dx = ex[use] - cx[label]
+        dy = ey[use] - cy[label]
         dist = np.hypot(dx, dy)
         # On the circle and tangent to it (edge tangents are modulo π).
         dth = np.abs(np.mod(eth[use] - np.arctan2(dy, dx), np.pi) - np.pi / 2)
@@ -963,10 +990,11 @@ def _arcs_on_edges(circles: F64, edge_xy: F32, edge_theta: F32, nearest: NDArray
             return _no_parts()
         refit = np.zeros((len(current), 5))
         refit[:, 2] = np.inf
-        refit[present] = _fit_circles(exy[use], np.unique(label, return_inverse=True)[1])
+        refit[present] = _fit_circles(np.take(exy, use, axis=0),
+                                      np.unique(label, return_inverse=True)[1])
         current = _prune_circles(refit, config)
     # Two starting circles may converge on one circle: keep the best covered.
-    return _dedupe_arcs(_arc_parts(exy[use], label, current, exy, config))
+    return _dedupe_arcs(_arc_parts(np.take(exy, use, axis=0), label, current, exy, config))
 
 
 def _prune_circles(fit: F64, config: FeatureConfig, tol_px: float = 1.5) -> F64:
@@ -1020,7 +1048,7 @@ def _arc_parts(pts: F64, label: NDArray[np.int64], circles: F64, edge_xy: F64,
     fits = (r >= config.arc_min_radius_px) & (r <= config.arc_max_radius_px)
     fits &= rms <= np.maximum(config.arc_max_rms_px, config.arc_max_rms_frac * r)
     use = fits[label]
-    pts, label = pts[use], label[use]
+    pts, label = np.compress(use, pts, axis=0), label[use]
     if len(pts) == 0:
         return _no_parts()
     # Angular coverage in bins about 2 px of arc long. The arc is the longest
@@ -1085,7 +1113,7 @@ def _closed_circle_orientation(edge_xy: F64, cx: float, cy: float, r: float) -> 
     d = np.hypot(edge_xy[:, 0] - cx, edge_xy[:, 1] - cy)
     near = (d < 1.6 * r) & (np.abs(d - r) > 2.5)
     if near.any():
-        v = edge_xy[near].mean(axis=0) - (cx, cy)
+        v = np.compress(near, edge_xy, axis=0).mean(axis=0) - (cx, cy)
         if np.hypot(v[0], v[1]) > 0.05 * r:
             return float(np.arctan2(v[1], v[0]))
     return 1.5 * np.pi
@@ -1110,10 +1138,11 @@ def _fit_circles(pts: F64, label: NDArray[np.int64]) -> F64:
     """
     n_sets = int(label.max()) + 1
     n = np.bincount(label, minlength=n_sets).astype(np.float64)
-    mx = np.bincount(label, pts[:, 0], n_sets) / n
-    my = np.bincount(label, pts[:, 1], n_sets) / n
-    u = pts[:, 0] - mx[label]
-    v = pts[:, 1] - my[label]
+    x, y = pts[:, 0].copy(), pts[:, 1].copy()  # contiguous: read several times
+    mx = np.bincount(label, x, n_sets) / n
+    my = np.bincount(label, y, n_sets) / n
+    u = x - mx[label]
+    v = y - my[label]
     z = u * u + v * v
     # Centred coordinates make the normal equations block diagonal:
     # u² + v² = A u + B v + C with C = mean(z) and a 2x2 system for (A, B).
