@@ -673,29 +673,36 @@ def _junctions(seg: F32, config: FeatureConfig) -> _Parts:
     a, b = pairs[:, 0], pairs[:, 1]
     sa, sb = owner[a], owner[b]
     ok = sa != sb
-    gap = np.linalg.norm(ends[a] - ends[b], axis=1)
+    # Rows of (N, 2) arrays are gathered with np.take and np.compress here
+    # and below: numpy's fancy and boolean indexing of them is several times
+    # slower.
+    end_a, end_b = np.take(ends, a, axis=0), np.take(ends, b, axis=0)
+    gap = np.linalg.norm(end_a - end_b, axis=1)
     ok &= gap <= (
         config.junction_gap_frac * np.minimum(length[sa], length[sb]) + config.junction_gap_px
     )
     a, b, sa, sb = a[ok], b[ok], sa[ok], sb[ok]
+    end_a, end_b = np.compress(ok, end_a, axis=0), np.compress(ok, end_b, axis=0)
     if len(a) == 0:
         return _no_parts()
-    # Arm direction: from the meeting end towards the far end of each segment.
-    far_a = ends[(a + n) % (2 * n)]
-    far_b = ends[(b + n) % (2 * n)]
-    ua = far_a - ends[a]
-    ub = far_b - ends[b]
+    # Arm direction: from the meeting end towards the far end of each segment
+    # (the other end of segment s is row s + n or s - n of ``ends``).
+    far_a = np.take(ends, np.where(a < n, a + n, a - n), axis=0)
+    far_b = np.take(ends, np.where(b < n, b + n, b - n), axis=0)
+    ua = far_a - end_a
+    ub = far_b - end_b
     ua /= np.linalg.norm(ua, axis=1, keepdims=True)
     ub /= np.linalg.norm(ub, axis=1, keepdims=True)
     cos = np.clip((ua * ub).sum(axis=1), -1.0, 1.0)
     opening = np.arccos(cos)
     lo = np.radians(config.min_junction_angle_deg)
     ok = (opening > lo) & (opening < np.pi - lo)
-    a, b, sa, sb, ua, ub, opening = a[ok], b[ok], sa[ok], sb[ok], ua[ok], ub[ok], opening[ok]
-    if len(a) == 0:
+    sa, sb, opening = sa[ok], sb[ok], opening[ok]
+    ua, ub = np.compress(ok, ua, axis=0), np.compress(ok, ub, axis=0)
+    if len(sa) == 0:
         return _no_parts()
     # Vertex: intersection of the two lines (solve p_a + t ua = p_b + u ub).
-    pa, pb = ends[a], ends[b]
+    pa, pb = np.compress(ok, end_a, axis=0), np.compress(ok, end_b, axis=0)
     det = ua[:, 0] * (-ub[:, 1]) - ua[:, 1] * (-ub[:, 0])
     rhs = pb - pa
     t = (rhs[:, 0] * (-ub[:, 1]) - rhs[:, 1] * (-ub[:, 0])) / det
@@ -718,10 +725,10 @@ def _junctions(seg: F32, config: FeatureConfig) -> _Parts:
     sel = near
     return (
         np.full(int(sel.sum()), KIND_JUNCTION, np.int8),
-        vertex[sel].astype(np.float32),
+        np.compress(sel, vertex, axis=0).astype(np.float32),
         theta[sel].astype(np.float32),
         scale[sel].astype(np.float32),
-        attrs[sel].astype(np.float32),
+        np.compress(sel, attrs, axis=0).astype(np.float32),
     )
 
 
@@ -753,13 +760,16 @@ def _parallel_pairs(seg: F32, config: FeatureConfig) -> _Parts:
     # Common direction (align j's direction with i's before averaging).
     # Sums of two products written out (the same arithmetic as .sum(axis=1)
     # over pairs, without (N, 2) temporaries).
-    ui, uj = u[i], u[j]
+    # Rows of (N, 2) arrays are gathered with np.take and np.compress: numpy's
+    # fancy and boolean indexing of them is several times slower.
+    ui, uj = np.take(u, i, axis=0), np.take(u, j, axis=0)
     uj *= np.sign(ui[:, 0] * uj[:, 0] + ui[:, 1] * uj[:, 1])[:, None]
     dirn = ui + uj
     dirn /= np.linalg.norm(dirn, axis=1, keepdims=True)
     dx, dy = dirn[:, 0], dirn[:, 1]
     normal = np.stack([-dy, dx], axis=1)
-    dm = mid[j] - mid[i]
+    mid_i, mid_j = np.take(mid, i, axis=0), np.take(mid, j, axis=0)
+    dm = mid_j - mid_i
     sep = np.abs(dm[:, 0] * -dy + dm[:, 1] * dx)
     # Overlap of the projections on the common direction.
     def along(p: F64, k: NDArray[np.int64]) -> F64:
@@ -773,9 +783,11 @@ def _parallel_pairs(seg: F32, config: FeatureConfig) -> _Parts:
     ok = (sep >= 3.0) & (overlap >= 0.5 * shorter) & (sep <= 2.0 * np.maximum(length[i], length[j]))
     if not ok.any():
         return _no_parts()
-    i, j, dirn, normal, sep, overlap = i[ok], j[ok], dirn[ok], normal[ok], sep[ok], overlap[ok]
+    i, j, sep, overlap = i[ok], j[ok], sep[ok], overlap[ok]
+    dirn, normal = np.compress(ok, dirn, axis=0), np.compress(ok, normal, axis=0)
+    mid_i, mid_j = np.compress(ok, mid_i, axis=0), np.compress(ok, mid_j, axis=0)
     centre_along = (lo[ok] + hi[ok]) / 2
-    centre_across = ((mid[i] + mid[j]) / 2 * normal).sum(axis=1)
+    centre_across = ((mid_i + mid_j) / 2 * normal).sum(axis=1)
     xy = dirn * centre_along[:, None] + normal * centre_across[:, None]
     theta = np.mod(np.arctan2(dirn[:, 1], dirn[:, 0]), np.pi)
     attrs = np.stack([np.log(overlap / sep), np.log(length[i] / length[j]) * 0.0], axis=1)
@@ -1067,7 +1079,7 @@ def _arc_parts(pts: F64, label: NDArray[np.int64], circles: F64, edge_xy: F64,
     for c in np.flatnonzero(np.diff(bounds) > 0):
         o = occ[bounds[c]: bounds[c + 1]]
         n = int(n_bins[c])
-        gap = np.diff(np.append(o, o[0] + n)) - 1
+        gap = _cyclic_gaps(o, n)
         big = np.flatnonzero(gap > max(2, round(0.06 * n)))
         if len(big) == 0:
             # Closed (or nearly): the middle of the arc is undefined.
@@ -1080,7 +1092,7 @@ def _arc_parts(pts: F64, label: NDArray[np.int64], circles: F64, edge_xy: F64,
                 continue
         # Runs start after a big gap and end at the next big gap.
         first = (big + 1) % len(o)
-        last = np.roll(big, -1)
+        last = np.concatenate((big[1:], big[:1]))  # np.roll(big, -1), cheaper
         run_bins = np.mod(o[last] - o[first], n) + 1
         run_count = np.mod(last - first, len(o)) + 1
         k = int(np.argmax(run_bins))
@@ -1100,6 +1112,29 @@ def _arc_parts(pts: F64, label: NDArray[np.int64], circles: F64, edge_xy: F64,
         r[circle].astype(np.float32),
         np.stack([span, np.zeros(len(span))], axis=1).astype(np.float32),
     )
+
+
+def _cyclic_gaps(occupied: NDArray[np.int64], n_bins: int) -> NDArray[np.int64]:
+    """Empty bins after each occupied bin up to the next one, round the circle.
+
+    Parameters
+    ----------
+    occupied : (M,) int64
+        Occupied bins in increasing order, in ``0..n_bins-1``, M >= 1.
+    n_bins : int
+        Bins round the circle.
+
+    Returns
+    -------
+    (M,) int64
+        ``np.diff(np.append(occupied, occupied[0] + n_bins)) - 1``, without
+        np.append and np.diff: their overhead counts once per circle.
+    """
+    gaps = np.empty_like(occupied)
+    np.subtract(occupied[1:], occupied[:-1], out=gaps[:-1])
+    gaps[-1] = occupied[0] + n_bins - occupied[-1]
+    gaps -= 1
+    return gaps
 
 
 def _closed_circle_orientation(edge_xy: F64, cx: float, cy: float, r: float) -> float:
