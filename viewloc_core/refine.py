@@ -349,13 +349,21 @@ def _sample(
 
 
 @functools.lru_cache(maxsize=64)
-def _search_line(search: int) -> tuple[NDArray[np.float32], Array, Array]:
-    """Offsets along the normal (float32 for the sample maps and float64) and
-    the Gaussian prior of the interior offsets."""
+def _search_line(search: int) -> tuple[NDArray[np.float32], Array]:
+    """Offsets along the normal and the Gaussian prior of the interior ones.
+
+    Returns
+    -------
+    offsets_px : (K, 1, 1) float32
+        ``-search .. search`` level pixels (K = 2 search + 1), shaped to
+        broadcast against (N, 2) normals into a (K, N, 2) sample map.
+    prior : (K - 2, 1) float64
+        Weight of each interior offset, shaped to broadcast over N columns.
+    """
     ks = np.arange(-search, search + 1, dtype=np.float64)
     sigma = max(1.0, search / 3.0)
     prior = np.exp(-0.5 * (ks[1:-1] / sigma) ** 2)
-    return ks.astype(np.float32), ks, prior
+    return ks.astype(np.float32).reshape(-1, 1, 1), prior.reshape(-1, 1)
 
 
 def _search(
@@ -366,38 +374,76 @@ def _search(
     min_gradient: float,
     cos_max: float,
 ) -> tuple[NDArray[np.bool_], Array]:
-    """Edge offsets along the normals on one level: found (N,), offset (N,) level px."""
-    ks32, ks, prior = _search_line(search)
+    """Edge offsets along the normals on one level.
+
+    Parameters
+    ----------
+    grad : (H_l, W_l, 2) float32
+        Interleaved (∂I/∂x, ∂I/∂y) of the level.
+    uv_l : (N, 2) float64
+        Projected contour points, level pixels.
+    n2 : (N, 2) float64
+        Unit 2D normals.
+    search : int
+        Half-length of the search line, level pixels.
+    min_gradient, cos_max : float
+        Weakest edge (intensity per pixel) and cosine of the largest angle
+        between gradient and normal.
+
+    Returns
+    -------
+    found : (N,) bool
+        An edge lies on the search line.
+    offset_px : (N,) float64
+        Sub-pixel offset of the edge along the normal, level pixels;
+        meaningful only where ``found``.
+    """
+    ks32, prior = _search_line(search)
     uv32 = uv_l.astype(np.float32)
     n32 = n2.astype(np.float32)
-    mapx = uv32[:, 0:1] + ks32[None, :] * n32[:, 0:1]
-    mapy = uv32[:, 1:2] + ks32[None, :] * n32[:, 1:2]
+    n = len(uv32)
+    # Samples laid out (K offsets, N points): every elementwise step below
+    # then runs over long contiguous rows instead of short ones per point.
+    sample_map = ks32 * n32
+    sample_map += uv32
     # The interleaved pair, not the planes: OpenCV interpolates it with
     # weights rounded to 1/32 px, and the fits were tuned and measured so.
-    g = cv2.remap(grad, mapx, mapy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                  borderValue=0)
-    gx = g[..., 0]
-    gy = g[..., 1]
-    along = np.abs(gx * n32[:, 0:1] + gy * n32[:, 1:2])
+    # One (x, y) map and no second one (which the stubs do not allow for).
+    g = cv2.remap(grad, sample_map, None, cv2.INTER_LINEAR,  # type: ignore[call-overload]
+                  borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    products = g * n32
+    along = products[..., 0] + products[..., 1]
+    np.abs(along, out=along)
     # |g·n| >= cos(max angle)·|g|, squared to skip the square root.
-    aligned = along * along >= np.float32(cos_max * cos_max) * (gx * gx + gy * gy)
-    score = np.where(aligned & (along >= np.float32(min_gradient)), along, np.float32(0.0))
+    np.multiply(g, g, out=products)
+    limit = products[..., 0] + products[..., 1]
+    limit *= np.float32(cos_max * cos_max)
+    edge = along >= np.float32(min_gradient)
+    edge &= along * along >= limit
+    score = np.where(edge, along, np.float32(0.0))
     # Local maxima of the interior samples only: a maximum at the end of the
     # search line is only the slope of an edge beyond it.
-    mid = score[:, 1:-1]
-    peak = (mid > 0) & (mid >= score[:, :-2]) & (mid >= score[:, 2:])
-    weighted = np.where(peak, mid * prior[None, :], 0.0)
-    inner = np.argmax(weighted, axis=1)
-    rows = np.arange(len(inner))
-    found = weighted[rows, inner] > 0
-    best = inner + 1
-    s0 = score[rows, best].astype(np.float64)
-    sl = along[rows, best - 1].astype(np.float64)
-    sr = along[rows, best + 1].astype(np.float64)
-    denom = sl - 2.0 * s0 + sr
+    mid = score[1:-1]
+    peak = mid >= np.maximum(score[:-2], score[2:])
+    peak &= mid > 0
+    weighted = np.zeros(mid.shape)
+    np.multiply(mid, prior, out=weighted, where=peak)
+    inner = weighted.argmax(axis=0)
+    # A peak has a positive score and weight, so its column's maximum is positive.
+    found = np.logical_or.reduce(peak, axis=0)
+    # along[best - 1], along[best], along[best + 1] per column (flat indices);
+    # along equals score at a found peak.
+    centre = inner * n
+    centre += np.arange(n, 2 * n)
+    left, s0, right = along.take(centre + np.array([[-n], [0], [n]])).astype(np.float64)
+    denom = left - 2.0 * s0 + right
     safe = np.abs(denom) > 1e-12
-    sub = np.where(safe, 0.5 * (sl - sr) / np.where(safe, denom, 1.0), 0.0)
-    offset = ks[best] + np.clip(sub, -0.5, 0.5)
+    sub = np.zeros(n)
+    np.divide(0.5 * (left - right), denom, out=sub, where=safe)
+    np.maximum(sub, -0.5, out=sub)
+    np.minimum(sub, 0.5, out=sub)
+    # Offset of sample inner + 1 is inner + 1 - search.
+    offset = inner + (1 - search) + sub
     return found, offset
 
 
