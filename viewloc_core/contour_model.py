@@ -122,7 +122,7 @@ class ContourModel:
         d = -pose.R_m2c.T @ pose.t_m2c
         if float(d @ d) < 1e-18:
             d = -pose.R_m2c[2]
-        return int(np.argmax(self.directions @ d))
+        return int((self.directions @ d).argmax())
 
     def view_points(self, view: int) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
         """(points_obj (n, 3), normals_obj (n, 3)) of one view, float32."""

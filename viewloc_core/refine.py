@@ -282,7 +282,7 @@ class _Projector:
     instead of a conversion, two products and two projections.
     """
 
-    __slots__ = ("camera", "model", "_stacked", "_focal", "_windows")
+    __slots__ = ("camera", "model", "_stacked", "_focal", "_windows", "_pinhole")
 
     def __init__(self, camera: Camera, model: ContourModel) -> None:
         self.camera = camera
@@ -290,6 +290,9 @@ class _Projector:
         self._stacked: dict[int, Array] = {}
         self._focal = camera.focal_px
         self._windows: dict[float, tuple[Array, Array]] = {}
+        # (fx, fy, cx, cy), or None when the camera distorts (Camera.project does it).
+        self._pinhole = (None if camera.has_distortion
+                         else (camera.fx, camera.fy, camera.cx, camera.cy))
 
     def _view(self, view: int) -> Array:
         stacked = self._stacked.get(view)
@@ -309,31 +312,60 @@ class _Projector:
             self._windows[margin_px] = window
         return window
 
+    def _pixels(self, pts_cam: Array) -> Array:
+        """(M, 2) pixels of (M, 3) camera points (mm, z > 0): Camera.project's
+        arithmetic, one column at a time (twice as fast as dividing (M, 2)
+        by a broadcast (M, 1))."""
+        if self._pinhole is None:
+            return self.camera.project(pts_cam)
+        fx, fy, cx, cy = self._pinhole
+        uv = np.empty((len(pts_cam), 2))
+        u, v = uv[:, 0], uv[:, 1]
+        z = pts_cam[:, 2]
+        np.divide(pts_cam[:, 0], z, out=u)
+        u *= fx
+        u += cx
+        np.divide(pts_cam[:, 1], z, out=v)
+        v *= fy
+        v += cy
+        return uv
+
     def project(self, pose: Pose, margin_px: float) -> _Projection | None:
         """Projected in-image contour points, their unit 2D normals and camera points."""
         stacked = self._view(self.model.nearest_view(pose))
         n = len(stacked) // 2
         if n == 0:
             return None
-        Y = stacked @ pose.R_m2c.T
-        X = Y[:n] + pose.t_m2c
-        front = X[:, 2] > 1.0
-        if not front.all():
-            X, Y = X[front], np.concatenate([Y[:n][front], Y[n:][front]])
-            n = len(X)
+        # Rows :n become the camera points X, rows n: the rotated normals and
+        # then the points a step along them, so both project in one call.
+        both = stacked @ pose.R_m2c.T
+        X = both[:n]
+        X += pose.t_m2c
+        if not (X[:, 2] > 1.0).all():
+            front = X[:, 2] > 1.0
+            both = np.concatenate([X[front], both[n:][front]])
+            n = len(both) // 2
             if n == 0:
                 return None
+            X = both[:n]
         # A step of about a pixel along the stored 3D normal gives the 2D normal.
-        X2 = X + (X[:, 2] / self._focal)[:, None] * Y[n:]
-        uv_both = self.camera.project(np.concatenate([X, X2]))
+        step = both[n:]
+        step *= (X[:, 2] / self._focal)[:, None]
+        step += X
+        uv_both = self._pixels(both)
         uv = uv_both[:n]
-        d = uv_both[n:] - uv
-        norm = np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1])
+        d = uv_both[n:]
+        d -= uv
+        d_sq = d * d
+        norm = np.sqrt(d_sq[:, 0] + d_sq[:, 1])
         # Inside [margin, size - 1 - margin] on both axes: |uv - centre| <= half.
         centre, half = self._window(margin_px)
-        ok = (np.abs(uv - centre) <= half).all(axis=1) & (norm > 1e-6)
+        inside = np.abs(uv - centre) <= half
+        ok = inside[:, 0] & inside[:, 1]
+        ok &= norm > 1e-6
         if ok.all():
-            return _Projection(uv, d / norm[:, None], X)
+            d /= norm[:, None]
+            return _Projection(uv, d, X)
         if not ok.any():
             return None
         return _Projection(uv[ok], d[ok] / norm[ok, None], X[ok])
