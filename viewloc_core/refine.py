@@ -371,13 +371,14 @@ class _Projector:
         return _Projection(uv[ok], d[ok] / norm[ok, None], X[ok])
 
 
-def _sample(
-    plane: NDArray[np.float32], mapx: NDArray[np.float32], mapy: NDArray[np.float32]
-) -> NDArray[np.float32]:
-    """Bilinear samples of one plane at (mapx, mapy), 0 outside."""
-    return np.asarray(cv2.remap(plane, mapx, mapy, cv2.INTER_LINEAR,
-                                borderMode=cv2.BORDER_CONSTANT, borderValue=0),
-                      dtype=np.float32)
+def _sample(plane: NDArray[np.float32], sample_map: NDArray[np.float32]) -> NDArray[np.float32]:
+    """Bilinear samples of one (H, W) plane at the (..., 2) pixel positions
+    (x, y) of ``sample_map``, 0 outside; shape ``sample_map.shape[:-1]``."""
+    # No second map: the first holds (x, y) pairs. (The stubs want one, but
+    # an empty array is not the same: one-channel planes then sample wrong.)
+    samples = cv2.remap(plane, sample_map, None, cv2.INTER_LINEAR,  # type: ignore[call-overload]
+                        borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    return np.asarray(samples, dtype=np.float32)
 
 
 @functools.lru_cache(maxsize=64)
@@ -677,12 +678,13 @@ def _align_shift(
     n32 = proj.n2.astype(np.float32)
     rad = max(1, int(math.ceil(opts.shift_search_px / f)))
     shifts, dist2 = _shift_grid(rad)
-    pos_x = shifts[:, 0:1] + uv_l[None, :, 0]
-    pos_y = shifts[:, 1:2] + uv_l[None, :, 1]
+    sample_map = _shifted_map(uv_l, rad)
     gx_plane, gy_plane = edges.level_planes(level)
-    along = _sample(gx_plane, pos_x, pos_y)
-    along *= n32[None, :, 0]
-    along += _sample(gy_plane, pos_x, pos_y) * n32[None, :, 1]
+    along = _sample(gx_plane, sample_map)
+    along *= n32[:, 0]
+    along_y = _sample(gy_plane, sample_map)
+    along_y *= n32[:, 1]
+    along += along_y
     np.abs(along, out=along)
     # Saturate so a few very strong clutter edges cannot outvote the outline.
     np.minimum(along, np.float32(4.0 * opts.min_gradient), out=along)
@@ -706,6 +708,32 @@ def _shift_grid(rad: int) -> tuple[NDArray[np.float32], Array]:
     sx, sy = np.meshgrid(grid, grid)
     shifts = np.column_stack([sx.ravel(), sy.ravel()])
     return shifts, (shifts.astype(np.float64) ** 2).sum(axis=1)
+
+
+def _shifted_map(uv: NDArray[np.float32], rad: int) -> NDArray[np.float32]:
+    """Sample map of N points under every shift of :func:`_shift_grid`.
+
+    Parameters
+    ----------
+    uv : (N, 2) float32
+        Points, pixels.
+    rad : int
+        Largest shift, pixels.
+
+    Returns
+    -------
+    (S, N, 2) float32
+        ``uv + shift`` for the S = (2 rad + 1)² shifts in the grid's order.
+        Only the 2 rad + 1 distinct rows of x and of y are added; the rest
+        is copying (a broadcast add over (S, N, 2) costs ten times more).
+    """
+    grid = np.arange(-rad, rad + 1, dtype=np.float32)[:, None]
+    side, n = len(grid), len(uv)
+    # Shift index s = iy * side + ix moves by (grid[ix], grid[iy]).
+    sample_map = np.empty((side, side, n, 2), np.float32)
+    sample_map[..., 0] = grid + uv[:, 0]
+    sample_map[..., 1] = (grid + uv[:, 1])[:, None]
+    return sample_map.reshape(side * side, n, 2)
 
 
 def _final(
