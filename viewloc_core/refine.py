@@ -368,7 +368,10 @@ class _Projector:
             return _Projection(uv, d, X)
         if not ok.any():
             return None
-        return _Projection(uv[ok], d[ok] / norm[ok, None], X[ok])
+        kept = np.flatnonzero(ok)
+        d = d.take(kept, axis=0)
+        d /= norm.take(kept)[:, None]
+        return _Projection(uv.take(kept, axis=0), d, X.take(kept, axis=0))
 
 
 def _sample(plane: NDArray[np.float32], sample_map: NDArray[np.float32]) -> NDArray[np.float32]:
@@ -497,7 +500,9 @@ def _matches(
     if not found.any():
         return _Matches(np.zeros((0, 6)), np.zeros(0), len(uv))
     if not found.all():
-        n2, X, offset = n2[found], X[found], offset[found]
+        # Taking indices costs half of three boolean masks.
+        kept = np.flatnonzero(found)
+        n2, X, offset = n2.take(kept, axis=0), X.take(kept, axis=0), offset.take(kept)
     # The matched edge lies offset·f full-res pixels along n2 from the
     # projection; the residual n·(π(X) - q) is minus that.
     r = -offset * f
