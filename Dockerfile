@@ -43,6 +43,9 @@ COPY --from=builder /app /app
 RUN useradd --create-home --uid 10001 --user-group viewloc \
     && mkdir -p /data && chown viewloc:viewloc /data
 USER viewloc
+# numba compiles the pipeline's kernels at start-up and caches them; /app is
+# not writable by this user, so the cache lives in its home.
+ENV NUMBA_CACHE_DIR=/home/viewloc/.cache/numba
 VOLUME ["/data"]
 EXPOSE 8000
 # python instead of curl: the slim image has no curl, and one less package.
