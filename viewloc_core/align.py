@@ -503,7 +503,7 @@ def coverage_many(feats: ImageFeatures, sims: F64, pts: F64, bins: NDArray[np.in
 def extend_many(feats: ImageFeatures, sims: F64, pts: F64, theta: F64,
                 valid: NDArray[np.bool_], radii: tuple[float, ...], tol_deg: float,
                 robust: bool = False) -> F64:
-    """Greedy extension of H hypotheses at once (batched normal equations).
+    """Greedy extension of H hypotheses (:mod:`viewloc_core.similarity_fit`).
 
     Each step pairs every valid edge sample with the nearest image edge
     within the step's radius and of similar orientation, and re-fits the

@@ -26,57 +26,37 @@ F64 = NDArray[np.float64]
 
 
 @njit(cache=True, nogil=True)
-def _solve4(AtA: F64, Atb: F64) -> tuple[bool, F64]:  # pragma: no cover - compiled
-    """Gaussian elimination with partial pivoting of one 4x4 system (copies)."""
+def _solve4(AtA: F64, Atb: F64) -> tuple[float, F64]:  # pragma: no cover - compiled
+    """Determinant and solution of one 4x4 system (Gaussian elimination with
+    partial pivoting, on copies); the solution is zeros when the determinant is 0."""
     M = AtA.copy()
     b = Atb.copy()
+    det = 1.0
+    x = np.zeros(4)
     for col in range(4):
         piv = col
         for r in range(col + 1, 4):
             if abs(M[r, col]) > abs(M[piv, col]):
                 piv = r
         if M[piv, col] == 0.0:
-            return False, b
+            return 0.0, x
         if piv != col:
             for c in range(4):
                 M[col, c], M[piv, c] = M[piv, c], M[col, c]
             b[col], b[piv] = b[piv], b[col]
+            det = -det
+        det *= M[col, col]
         for r in range(col + 1, 4):
             f = M[r, col] / M[col, col]
             for c in range(col, 4):
                 M[r, c] -= f * M[col, c]
             b[r] -= f * b[col]
-    x = np.empty(4)
     for r in range(3, -1, -1):
         acc = b[r]
         for c in range(r + 1, 4):
             acc -= M[r, c] * x[c]
         x[r] = acc / M[r, r]
-    return True, x
-
-
-@njit(cache=True, nogil=True)
-def _det4(M: F64) -> float:  # pragma: no cover - compiled
-    """Determinant of a 4x4 matrix by elimination with partial pivoting."""
-    A = M.copy()
-    det = 1.0
-    for col in range(4):
-        piv = col
-        for r in range(col + 1, 4):
-            if abs(A[r, col]) > abs(A[piv, col]):
-                piv = r
-        if A[piv, col] == 0.0:
-            return 0.0
-        if piv != col:
-            for c in range(4):
-                A[col, c], A[piv, c] = A[piv, c], A[col, c]
-            det = -det
-        det *= A[col, col]
-        for r in range(col + 1, 4):
-            f = A[r, col] / A[col, col]
-            for c in range(col, 4):
-                A[r, c] -= f * A[col, c]
-    return det
+    return det, x
 
 
 @njit(cache=True, nogil=True)
@@ -177,23 +157,21 @@ def fit_similarities(
                 used += 1
             ok = used >= 6
             if ok:
-                det = abs(_det4(AtA))
+                det, sol = _solve4(AtA, Atb)
                 if robust:
                     trace = max(AtA[0, 0] + AtA[1, 1] + AtA[2, 2] + AtA[3, 3], 1e-12)
-                    ok = det >= 1e-9 * trace**4
+                    ok = abs(det) >= 1e-9 * trace**4
                 else:
-                    ok = det > 1e-9
+                    ok = abs(det) > 1e-9
             if ok:
-                ok, sol = _solve4(AtA, Atb)
+                scale = math.hypot(sol[0], sol[1])
+                ok = 0.5 * sc < scale < 2.0 * sc
+                new_angle = math.atan2(sol[1], sol[0])
+                if robust:
+                    ok = ok and math.isfinite(sol[2]) and math.isfinite(sol[3]) and (
+                        math.isfinite(new_angle) and math.isfinite(scale))
                 if ok:
-                    scale = math.hypot(sol[0], sol[1])
-                    ok = 0.5 * sc < scale < 2.0 * sc
-                    new_angle = math.atan2(sol[1], sol[0])
-                    if robust:
-                        ok = ok and math.isfinite(sol[2]) and math.isfinite(sol[3]) and (
-                            math.isfinite(new_angle) and math.isfinite(scale))
-                    if ok:
-                        x0, y0, ang, sc = sol[2], sol[3], new_angle, scale
+                    x0, y0, ang, sc = sol[2], sol[3], new_angle, scale
             if robust and not ok:
                 break
         out[i, 0], out[i, 1], out[i, 2], out[i, 3] = x0, y0, ang, sc
