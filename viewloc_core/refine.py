@@ -282,7 +282,7 @@ class _Projector:
     instead of a conversion, two products and two projections.
     """
 
-    __slots__ = ("camera", "model", "_stacked", "_focal", "_windows", "_pinhole")
+    __slots__ = ("camera", "model", "_stacked", "_focal", "_windows")
 
     def __init__(self, camera: Camera, model: ContourModel) -> None:
         self.camera = camera
@@ -290,9 +290,6 @@ class _Projector:
         self._stacked: dict[int, Array] = {}
         self._focal = camera.focal_px
         self._windows: dict[float, tuple[Array, Array]] = {}
-        # (fx, fy, cx, cy), or None when the camera distorts (Camera.project does it).
-        self._pinhole = (None if camera.has_distortion
-                         else (camera.fx, camera.fy, camera.cx, camera.cy))
 
     def _view(self, view: int) -> Array:
         stacked = self._stacked.get(view)
@@ -311,24 +308,6 @@ class _Projector:
             window = (0.5 * (lo + hi), 0.5 * (hi - lo))
             self._windows[margin_px] = window
         return window
-
-    def _pixels(self, pts_cam: Array) -> Array:
-        """(M, 2) pixels of (M, 3) camera points (mm, z > 0): Camera.project's
-        arithmetic, one column at a time (twice as fast as dividing (M, 2)
-        by a broadcast (M, 1))."""
-        if self._pinhole is None:
-            return self.camera.project(pts_cam)
-        fx, fy, cx, cy = self._pinhole
-        uv = np.empty((len(pts_cam), 2))
-        u, v = uv[:, 0], uv[:, 1]
-        z = pts_cam[:, 2]
-        np.divide(pts_cam[:, 0], z, out=u)
-        u *= fx
-        u += cx
-        np.divide(pts_cam[:, 1], z, out=v)
-        v *= fy
-        v += cy
-        return uv
 
     def project(self, pose: Pose, margin_px: float) -> _Projection | None:
         """Projected in-image contour points, their unit 2D normals and camera points."""
@@ -352,7 +331,7 @@ class _Projector:
         step = both[n:]
         step *= (X[:, 2] / self._focal)[:, None]
         step += X
-        uv_both = self._pixels(both)
+        uv_both = self.camera.project(both)
         uv = uv_both[:n]
         d = uv_both[n:]
         d -= uv
@@ -374,12 +353,14 @@ class _Projector:
         return _Projection(uv.take(kept, axis=0), d, X.take(kept, axis=0))
 
 
-def _sample(plane: NDArray[np.float32], sample_map: NDArray[np.float32]) -> NDArray[np.float32]:
-    """Bilinear samples of one (H, W) plane at the (..., 2) pixel positions
-    (x, y) of ``sample_map``, 0 outside; shape ``sample_map.shape[:-1]``."""
-    # No second map: the first holds (x, y) pairs. (The stubs want one, but
-    # an empty array is not the same: one-channel planes then sample wrong.)
-    samples = cv2.remap(plane, sample_map, None, cv2.INTER_LINEAR,  # type: ignore[call-overload]
+def _sample(image: NDArray[np.float32], sample_map: NDArray[np.float32]) -> NDArray[np.float32]:
+    """Bilinear samples of an (H, W) or (H, W, C) float32 image at the
+    (..., 2) pixel positions (x, y) of ``sample_map``, 0 outside; shape
+    ``sample_map.shape[:-1]`` (plus C)."""
+    # The first map holds (x, y) pairs, so there is no second map. OpenCV's
+    # type stubs declare one (hence the ignore), but passing an empty array
+    # instead of None samples one-channel images wrongly.
+    samples = cv2.remap(image, sample_map, None, cv2.INTER_LINEAR,  # type: ignore[call-overload]
                         borderMode=cv2.BORDER_CONSTANT, borderValue=0)
     return np.asarray(samples, dtype=np.float32)
 
@@ -444,9 +425,7 @@ def _search(
     sample_map += uv32
     # The interleaved pair, not the planes: OpenCV interpolates it with
     # weights rounded to 1/32 px, and the fits were tuned and measured so.
-    # One (x, y) map and no second one (which the stubs do not allow for).
-    g = cv2.remap(grad, sample_map, None, cv2.INTER_LINEAR,  # type: ignore[call-overload]
-                  borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    g = _sample(grad, sample_map)
     products = g * n32
     along = products[..., 0] + products[..., 1]
     np.abs(along, out=along)
