@@ -350,33 +350,6 @@ def _edge_pixels(edges: NDArray[np.uint8]) -> NDArray[np.int32]:
     return np.asarray(found, np.int32).reshape(-1, 2)
 
 
-def _texture_edges(edges: NDArray[np.uint8], gx: F32, gy: F32,
-                   config: FeatureConfig) -> NDArray[np.bool_]:
-    """Edge pixels inside texture, as a map (:func:`_texture_flags` per pixel).
-
-    Parameters
-    ----------
-    edges : (H, W) uint8
-        Canny edge map (non-zero = edge).
-    gx, gy : (H, W) float32
-        Image gradient.
-    config : FeatureConfig
-        ``texture_radius_px`` and ``texture_other_density``.
-
-    Returns
-    -------
-    (H, W) bool
-        True at edge pixels to drop.
-    """
-    ys, xs = np.nonzero(edges)
-    drop = np.zeros(edges.shape, bool)
-    if len(ys):
-        pixel_index = ys * edges.shape[1] + xs
-        direction = np.arctan2(gy[ys, xs], gx[ys, xs])
-        drop[ys, xs] = _texture_flags(edges.shape, pixel_index, direction, config)
-    return drop
-
-
 def _texture_flags(shape: tuple[int, int], pixel_index: NDArray[np.int64], direction: F32,
                    config: FeatureConfig) -> NDArray[np.bool_]:
     """Which edge pixels lie inside texture (surround suppression, as in

@@ -175,14 +175,17 @@ def test_banding_of_a_smooth_gradient_is_not_an_edge():
 @pytest.mark.parametrize("radius", [3, 12, 40])
 def test_texture_test_counts_other_orientations_in_the_window(radius):
     """The packed integer window counts against a plain count (reflected borders)."""
-    from viewloc_core.features import FeatureConfig, _texture_edges
+    from viewloc_core.features import FeatureConfig, _texture_flags
 
     rng = np.random.default_rng(radius)
     edges = ((rng.random((90, 120)) < 0.25) * 255).astype(np.uint8)
     gx = rng.normal(size=edges.shape).astype(np.float32)
     gy = rng.normal(size=edges.shape).astype(np.float32)
     config = FeatureConfig(texture_radius_px=radius, texture_other_density=0.156)
-    got = _texture_edges(edges, gx, gy, config)
+    ys, xs = np.nonzero(edges)
+    got = np.zeros(edges.shape, bool)
+    got[ys, xs] = _texture_flags(edges.shape, ys * edges.shape[1] + xs,
+                                 np.arctan2(gy[ys, xs], gx[ys, xs]), config)
     theta = np.mod(np.arctan2(gy, gx), np.pi)
     bins = np.minimum((theta * (8 / np.pi)).astype(int), 7)
     on = np.pad(edges > 0, radius, mode="symmetric")
