@@ -41,6 +41,7 @@ from viewloc_core.camera import Camera
 from viewloc_core.contour_model import ContourModel
 from viewloc_core.errors import InvalidImageError, InvalidInputError
 from viewloc_core.gradient import image_gradient
+from viewloc_core.normal_search import search_normals
 from viewloc_core.pose import Pose
 
 Array = NDArray[np.float64]
@@ -366,21 +367,17 @@ def _sample(image: NDArray[np.float32], sample_map: NDArray[np.float32]) -> NDAr
 
 
 @functools.lru_cache(maxsize=64)
-def _search_line(search: int) -> tuple[NDArray[np.float32], Array]:
-    """Offsets along the normal and the Gaussian prior of the interior ones.
+def _search_prior(search: int) -> Array:
+    """Weight of each interior offset ``-search + 1 .. search - 1`` of a
+    search line (level pixels): a Gaussian prior that prefers nearer edges.
 
     Returns
     -------
-    offsets_px : (K, 1, 1) float32
-        ``-search .. search`` level pixels (K = 2 search + 1), shaped to
-        broadcast against (N, 2) normals into a (K, N, 2) sample map.
-    prior : (K - 2, 1) float64
-        Weight of each interior offset, shaped to broadcast over N columns.
+    (2 search - 1,) float64
     """
-    ks = np.arange(-search, search + 1, dtype=np.float64)
+    ks = np.arange(-search + 1, search, dtype=np.float64)
     sigma = max(1.0, search / 3.0)
-    prior = np.exp(-0.5 * (ks[1:-1] / sigma) ** 2)
-    return ks.astype(np.float32).reshape(-1, 1, 1), prior.reshape(-1, 1)
+    return np.exp(-0.5 * (ks / sigma) ** 2)
 
 
 def _search(
@@ -391,12 +388,13 @@ def _search(
     min_gradient: float,
     cos_max: float,
 ) -> tuple[NDArray[np.bool_], Array]:
-    """Edge offsets along the normals on one level.
+    """Edge offsets along the normals on one level
+    (:func:`viewloc_core.normal_search.search_normals`).
 
     Parameters
     ----------
     grad : (H_l, W_l, 2) float32
-        Interleaved (∂I/∂x, ∂I/∂y) of the level.
+        Interleaved (∂I/∂x, ∂I/∂y) of the level, C-contiguous.
     uv_l : (N, 2) float64
         Projected contour points, level pixels.
     n2 : (N, 2) float64
@@ -415,51 +413,9 @@ def _search(
         Sub-pixel offset of the edge along the normal, level pixels;
         meaningful only where ``found``.
     """
-    ks32, prior = _search_line(search)
-    uv32 = uv_l.astype(np.float32)
-    n32 = n2.astype(np.float32)
-    n = len(uv32)
-    # Samples laid out (K offsets, N points): every elementwise step below
-    # then runs over long contiguous rows instead of short ones per point.
-    sample_map = ks32 * n32
-    sample_map += uv32
-    # The interleaved pair, not the planes: OpenCV interpolates it with
-    # weights rounded to 1/32 px, and the fits were tuned and measured so.
-    g = _sample(grad, sample_map)
-    products = g * n32
-    along = products[..., 0] + products[..., 1]
-    np.abs(along, out=along)
-    # |g·n| >= cos(max angle)·|g|, squared to skip the square root.
-    np.multiply(g, g, out=products)
-    limit = products[..., 0] + products[..., 1]
-    limit *= np.float32(cos_max * cos_max)
-    edge = along >= np.float32(min_gradient)
-    edge &= along * along >= limit
-    score = np.where(edge, along, np.float32(0.0))
-    # Local maxima of the interior samples only: a maximum at the end of the
-    # search line is only the slope of an edge beyond it.
-    mid = score[1:-1]
-    peak = mid >= np.maximum(score[:-2], score[2:])
-    peak &= mid > 0
-    weighted = np.zeros(mid.shape)
-    np.multiply(mid, prior, out=weighted, where=peak)
-    inner = weighted.argmax(axis=0)
-    # A peak has a positive score and weight, so its column's maximum is positive.
-    found = np.logical_or.reduce(peak, axis=0)
-    # along[best - 1], along[best], along[best + 1] per column (flat indices);
-    # along equals score at a found peak.
-    centre = inner * n
-    centre += np.arange(n, 2 * n)
-    left, s0, right = along.take(centre + np.array([[-n], [0], [n]])).astype(np.float64)
-    denom = left - 2.0 * s0 + right
-    safe = np.abs(denom) > 1e-12
-    sub = np.zeros(n)
-    np.divide(0.5 * (left - right), denom, out=sub, where=safe)
-    np.maximum(sub, -0.5, out=sub)
-    np.minimum(sub, 0.5, out=sub)
-    # Offset of sample inner + 1 is inner + 1 - search.
-    offset = inner + (1 - search) + sub
-    return found, offset
+    return search_normals(grad, np.ascontiguousarray(uv_l, np.float64),
+                          np.ascontiguousarray(n2, np.float64), search, min_gradient, cos_max,
+                          _search_prior(search))
 
 
 def _matches(
