@@ -432,10 +432,16 @@ def _gradient(image: NDArray[np.generic], smooth_grey: F32) -> tuple[F32, F32]:
     channel where it is largest (:func:`viewloc_core.gradient.image_gradient`)."""
     arr = np.asarray(image)
     if arr.ndim == 3 and arr.shape[2] >= 3:
-        scale = 1.0 / (255.0 if arr.dtype == np.uint8 else 65535.0)
-        colour = cv2.GaussianBlur(arr[:, :, :3].astype(np.float32) * np.float32(scale),
-                                  (0, 0), 1.0)
-        return image_gradient(np.asarray(colour, np.float32))
+        # The intensity unit of to_grey_float: integer images scaled to
+        # [0, 1], float images taken as they are.
+        step = _quantisation_step(arr)
+        colour = arr[:, :, :3].astype(np.float32)
+        if step:
+            colour *= np.float32(step)
+        else:
+            colour = np.nan_to_num(colour)
+        smooth_colour = cv2.GaussianBlur(colour, (0, 0), 1.0)
+        return image_gradient(np.asarray(smooth_colour, np.float32))
     return image_gradient(smooth_grey)
 
 

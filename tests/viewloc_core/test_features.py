@@ -53,6 +53,20 @@ def test_colour_edges_between_equal_luminance_colours_are_found():
     assert np.median(np.abs(feats.edge_theta - np.pi / 2)) < 0.1
 
 
+def test_float_colour_images_give_the_features_of_their_8_bit_original():
+    # Colour in [0, 1] as float32: the same intensities as the uint8 image.
+    # A dim, low-contrast one: the gradient of a float image was once scaled
+    # as if it were 16 bit, and its edges fell under the blank-image threshold.
+    grey = _square_image(45, 30)
+    colour8 = np.dstack([grey, grey // 2, 60 - grey]).astype(np.uint8)
+    colour_float = colour8.astype(np.float32) / np.float32(255.0)
+    base = extract_features(colour8)
+    floated = extract_features(colour_float)
+    assert len(base.edge_xy) > 300
+    assert abs(len(floated.edge_xy) - len(base.edge_xy)) <= 0.02 * len(base.edge_xy)
+    assert abs(len(floated.grouped) - len(base.grouped)) <= 1
+
+
 def test_junctions_rotate_with_the_image():
     img = _square_image()
     M = cv2.getRotationMatrix2D((120, 100), 30.0, 1.0)  # counter-clockwise on screen
