@@ -394,7 +394,7 @@ def _search(
     Parameters
     ----------
     grad : (H_l, W_l, 2) float32
-        Interleaved (∂I/∂x, ∂I/∂y) of the level, C-contiguous.
+        Interleaved (∂I/∂x, ∂I/∂y) of the level.
     uv_l : (N, 2) float64
         Projected contour points, level pixels.
     n2 : (N, 2) float64
@@ -413,7 +413,7 @@ def _search(
         Sub-pixel offset of the edge along the normal, level pixels;
         meaningful only where ``found``.
     """
-    return search_normals(grad, np.ascontiguousarray(uv_l, np.float64),
+    return search_normals(np.ascontiguousarray(grad), np.ascontiguousarray(uv_l, np.float64),
                           np.ascontiguousarray(n2, np.float64), search, min_gradient, cos_max,
                           _search_prior(search))
 
