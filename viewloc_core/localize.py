@@ -400,10 +400,11 @@ def localize(
             # Nothing to refine: not waited for (nor built, if not started).
             edges_future.cancel()
     # Pass 2: the final fit of the best locations, as many as detections are
-    # wanted. One spare location more, in case the view search ranked a
-    # false one first, found no more parts since the ranking keeps the view
-    # search's order (hard bench set: 38 of 80 missed either way, 2 false
-    # positives more with it) and cost 47 ms median at 640x480.
+    # wanted. A spare location more (in case the view search ranked a false
+    # one first) was tried and dropped: since the ranking keeps the view
+    # search's order it found no more parts (hard bench set: 38 of 80
+    # missed either way, 2 false positives more with it) and cost 47 ms
+    # median at 640x480.
     fitted = [_final_detection(model, loc, level, factor, camera, edges, contour,
                                index.view_radius_px)
               for loc in located[: options.max_detections]]

@@ -355,12 +355,12 @@ class _Projector:
 
 
 def _sample(image: NDArray[np.float32], sample_map: NDArray[np.float32]) -> NDArray[np.float32]:
-    """Bilinear samples of an (H, W) or (H, W, C) float32 image at the
-    (..., 2) pixel positions (x, y) of ``sample_map``, 0 outside; shape
-    ``sample_map.shape[:-1]`` (plus C)."""
-    # The first map holds (x, y) pairs, so there is no second map. OpenCV's
-    # type stubs declare one (hence the ignore), but passing an empty array
-    # instead of None samples one-channel images wrongly.
+    """Bilinear samples of one (H, W) float32 gradient plane (the shift
+    search's) at the (..., 2) pixel positions (x, y) of ``sample_map``, 0
+    outside; shape ``sample_map.shape[:-1]``."""
+    # The first map holds (x, y) pairs, so the second map is None. OpenCV's
+    # Python type annotations require an array there (hence the ignore),
+    # but an empty array instead of None samples one-channel images wrongly.
     samples = cv2.remap(image, sample_map, None, cv2.INTER_LINEAR,  # type: ignore[call-overload]
                         borderMode=cv2.BORDER_CONSTANT, borderValue=0)
     return np.asarray(samples, dtype=np.float32)
