@@ -34,6 +34,7 @@ from viewloc_core.align import (
 from viewloc_core.camera import Camera
 from viewloc_core.contour_model import ContourModel
 from viewloc_core.detection import Detection, Similarity2D
+from viewloc_core.edge_evidence import chance_rates
 from viewloc_core.errors import InvalidInputError
 from viewloc_core.features import extract_features, orientation_bin, to_grey_float
 from viewloc_core.model import ObjectModel, cached_per_model
@@ -50,7 +51,6 @@ from viewloc_core.symmetry import canonical_pose
 from viewloc_core.view_search import (
     ViewCandidate,
     best_member,
-    chance_rates,
     search_views,
     view_templates,
 )

@@ -11,14 +11,11 @@ Pope & Lowe's g(E, T), applied to dense edge samples rather than to sparse
 features). The best few are fitted by weighted least squares and scored
 again; the 6D pose starts from the winner.
 
-Scoring is a log-likelihood ratio object vs. clutter summed over the edge
-samples of a view: a sample whose spread orientation map has an edge of its
-orientation adds ``log(q / b_o)``, one without adds ``log((1 - q) / (1 - b_o))``,
-with ``q`` the rate at which a true view's samples find their edge and ``b_o``
-the image's own rate of edges in orientation bin ``o``. Each sample is weighted
-by the edge length it stands for in the image, so a view that explains the
-whole outline beats one that explains a part of it (one plate of a barbell)
-equally well.
+Scoring is the log-likelihood ratio object vs. clutter of
+:mod:`viewloc_core.edge_evidence`, summed over the edge samples of a view.
+Each sample is weighted by the edge length it stands for in the image, so a
+view that explains the whole outline beats one that explains a part of it
+(one plate of a barbell) equally well.
 """
 
 from __future__ import annotations
@@ -32,22 +29,14 @@ from scipy.spatial import cKDTree
 
 from viewloc_core import similarity as sim2
 from viewloc_core.align import coverage_many, extend_many, spread_subset
+from viewloc_core.edge_evidence import lay_over_templates
 from viewloc_core.features import (
-    ORIENTATION_BINS,
     ImageFeatures,
     orientation_bin,
-    orientation_turn,
-    wanted_bits,
 )
 from viewloc_core.model import ObjectModel, cached_per_model
-from viewloc_core.sample_evidence import lay_over as lay_over_samples
 
 F64 = NDArray[np.float64]
-
-#: Rate at which the edge samples of the true view find an image edge of
-#: their orientation (measured on rendered training views against scenes:
-#: lower than a contour's because shading edges come and go with the light).
-TRUE_HIT_RATE = 0.8
 
 #: In-plane angle offsets (degrees) and scale factors of the coarse grid. The
 #: spread orientation map accepts ±1 bin (±11°), so 5° steps leave no gap.
@@ -161,27 +150,6 @@ def view_templates(model: ObjectModel) -> ViewTemplates:
     return cached_per_model(_TEMPLATES, model, build_templates)
 
 
-_WANTED = wanted_bits(np.arange(ORIENTATION_BINS)).astype(np.uint16)
-
-
-def chance_rates(feats: ImageFeatures) -> F64:
-    """Share of image pixels where a sample of each orientation bin finds an edge.
-
-    Parameters
-    ----------
-    feats : ImageFeatures
-
-    Returns
-    -------
-    (ORIENTATION_BINS,) float64
-        In [0.005, 0.95]: the clutter model of the score.
-    """
-    bits = feats.orientation_bits[::2, ::2].astype(np.int64)
-    wanted = _WANTED.astype(np.int64)
-    rates = np.array([np.count_nonzero(bits & w) for w in wanted]) / max(bits.size, 1)
-    return np.clip(rates, 0.005, 0.95)
-
-
 @dataclass(frozen=True, slots=True)
 class ViewCandidate:
     """One training view laid over the image.
@@ -242,8 +210,8 @@ def score_views(
         px, py = templates.px[gather, subset], templates.py[gather, subset]
         bins, valid = templates.bins8[gather, subset], templates.valid[gather, subset]
         rows = np.arange(len(views))
-    llr, hits, n_valid, llr_all_found = _lay_over(feats, px, py, bins, valid, rows, sims,
-                                                  chance)
+    llr, hits, n_valid, llr_all_found = lay_over_templates(feats, px, py, bins, valid, rows,
+                                                           sims, chance)
     return (llr * (templates.length_px[views] * sims[:, 3]), hits / np.maximum(n_valid, 1),
             llr / np.maximum(llr_all_found, 1e-9))
 
@@ -251,28 +219,10 @@ def score_views(
 def _score_coarse(feats: ImageFeatures, templates: ViewTemplates, views: NDArray[np.int64],
                   sims: F64, chance: F64) -> F64:
     """The log-likelihood ratio of :func:`score_views` on each view's coarse subset."""
-    llr = _lay_over(feats, templates.coarse_px, templates.coarse_py, templates.coarse_bins8,
-                    templates.coarse_valid, views, sims, chance)[0]
+    llr = lay_over_templates(feats, templates.coarse_px, templates.coarse_py,
+                             templates.coarse_bins8, templates.coarse_valid, views, sims,
+                             chance)[0]
     return llr * (templates.length_px[views] * sims[:, 3])
-
-
-def _lay_over(feats: ImageFeatures, px: NDArray[np.float32], py: NDArray[np.float32],
-              bins: NDArray[np.uint8], valid: NDArray[np.bool_], rows: NDArray[np.int64],
-              sims: F64, chance: F64) -> tuple[F64, NDArray[np.int64], NDArray[np.int64], F64]:
-    """Template rows ``rows`` of (T, P) samples laid over the image by (H, 4)
-    similarities: :func:`viewloc_core.sample_evidence.lay_over`'s llr, hits,
-    valid samples and llr had every sample found its edge, per pair."""
-    log_hit = np.log(TRUE_HIT_RATE / chance)
-    log_miss = np.log((1.0 - TRUE_HIT_RATE) / (1.0 - chance))
-    # The similarity in float32, the precision the positions were tuned in.
-    cos_scale = (sims[:, 3] * np.cos(sims[:, 2])).astype(np.float32)
-    sin_scale = (sims[:, 3] * np.sin(sims[:, 2])).astype(np.float32)
-    # The samples' orientation bins turn with the in-plane angle.
-    turn = orientation_turn(sims[:, 2]).astype(np.uint8)
-    return lay_over_samples(
-        feats.orientation_bits, _WANTED, px, py, bins, valid,
-        np.ascontiguousarray(rows, np.int64), cos_scale, sin_scale,
-        sims[:, 0].astype(np.float32), sims[:, 1].astype(np.float32), turn, log_hit, log_miss)
 
 
 def best_member(

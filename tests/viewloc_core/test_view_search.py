@@ -6,10 +6,10 @@ import pytest
 
 from tests.viewloc_core.conftest import render_scene
 from viewloc_core.camera import Camera
+from viewloc_core.edge_evidence import chance_rates
 from viewloc_core.features import ORIENTATION_BINS, extract_features
 from viewloc_core.pose import Pose, rotation_angle_deg
 from viewloc_core.view_search import (
-    chance_rates,
     score_views,
     search_views,
     view_templates,
@@ -95,8 +95,9 @@ def test_scores_match_a_sample_by_sample_count(renderer, bracket_mesh, bracket_m
     """The vectorised scoring (whole views and coarse subsets) against a
     plain loop over samples: hit where the spread map has the sample's
     turned bin or a neighbour, samples outside the image add nothing."""
+    from viewloc_core.edge_evidence import TRUE_HIT_RATE
     from viewloc_core.features import wanted_bits
-    from viewloc_core.view_search import TRUE_HIT_RATE, _score_coarse
+    from viewloc_core.view_search import _score_coarse
 
     model = bracket_model
     templates = view_templates(model)
