@@ -271,8 +271,15 @@ def extract_features(
     mag = cv2.magnitude(gx, gy)
     # A strided sample is plenty for a percentile and four times cheaper.
     ref = float(np.percentile(mag[::2, ::2], 98.0))
-    if ref <= 1e-6:
+    g_max = float(max(np.abs(gx).max(), np.abs(gy).max()))
+    if g_max <= 1e-6:
         return _empty_features((h, w))
+    floor_gradient = config.edge_floor_lsb * _quantisation_step(image)
+    if ref <= 1e-6:
+        # More than 98% of the image is perfectly flat (a rendered or
+        # saturated background around a small part): the floor sets the
+        # scale, so every step of more than the floor is an edge.
+        ref = floor_gradient / config.edge_high_frac
     # LSD wants 8 bit: stretch between robust extremes so dim images keep edges.
     lo_v, hi_v = np.percentile(smooth[::2, ::2], [1.0, 99.0])
     grey8 = np.clip((smooth - lo_v) * (255.0 / max(hi_v - lo_v, 1e-6)), 0, 255).astype(np.uint8)
@@ -281,14 +288,23 @@ def extract_features(
     lines = _POOL.submit(_detect_lines, grey8)
 
     # Canny on the gradient normalised by the image's own gradient scale keeps
-    # the edge map independent of exposure and bit depth.
+    # the edge map independent of exposure and bit depth. Canny takes int16:
+    # where the image is nearly blank (a part on a plain table fills less
+    # than 2% of it) the scale is tiny and the part's edges would overflow,
+    # so the scale is raised until the strongest gradient fits (clipped
+    # gradients put their thresholds out of reach and bend their directions).
     norm = 1000.0 / ref
+    full_scale = 1000.0
+    if g_max * norm > 32000.0:
+        shrink = 32000.0 / (g_max * norm)
+        norm *= shrink
+        full_scale *= shrink
     dx16 = np.clip(gx * norm, -32000, 32000).astype(np.int16)
     dy16 = np.clip(gy * norm, -32000, 32000).astype(np.int16)
-    floor = config.edge_floor_lsb * _quantisation_step(image) * norm
+    floor = floor_gradient * norm
     edges = cv2.Canny(
-        dx16, dy16, max(config.edge_low_frac * 1000.0, 0.5 * floor),
-        max(config.edge_high_frac * 1000.0, floor), L2gradient=True,
+        dx16, dy16, max(config.edge_low_frac * full_scale, 0.5 * floor),
+        max(config.edge_high_frac * full_scale, floor), L2gradient=True,
     )
     if mask is not None:
         keep = cv2.dilate(mask.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0

@@ -228,3 +228,21 @@ def test_spread_map_sets_each_bin_within_the_square_radius():
     for (x, y), b in zip(xy.astype(int), orientation_bin(theta), strict=True):
         expected[max(0, y - 2): y + 3, max(0, x - 2): x + 3] |= np.uint16(1 << int(b))
     np.testing.assert_array_equal(bits, expected)
+
+
+@pytest.mark.parametrize("noise_share", [0.0, 0.01])
+def test_a_small_part_on_a_plain_background_keeps_its_whole_outline(noise_share):
+    """A part filling under 2% of the image: the 98th percentile of the
+    gradient is 0 (a flat background) or tiny (one grey level of noise in a
+    few pixels), which must neither blank the image nor overflow Canny's
+    int16 gradients; every side of the part is found, nothing else."""
+    img = np.full((480, 640), 40, np.uint8)
+    img[np.random.default_rng(0).random(img.shape) < noise_share] = 41
+    img[200:260, 300:380] = 143
+    feats = extract_features(img)
+    x, y = feats.edge_xy[:, 0], feats.edge_xy[:, 1]
+    sides = {"top": np.abs(y - 199.5) < 2.5, "bottom": np.abs(y - 259.5) < 2.5,
+             "left": np.abs(x - 299.5) < 2.5, "right": np.abs(x - 379.5) < 2.5}
+    for name, on_side in sides.items():
+        assert np.count_nonzero(on_side) >= 50, name
+    assert np.all((np.abs(x - 339.5) < 43) & (np.abs(y - 229.5) < 33))
