@@ -4,12 +4,15 @@
    same kind whose attributes are likely under the model's attribute density;
    each pairing is ranked by ``log p_j + log f_j(a_k) − log f_bg(a_k)``.
 2. *Seeds.* A junction or parallel-pair pairing fixes a whole similarity
-   ``(x, y, α, s)``. Seeds vote in a coarse (view, x, y, α, s) table so the
-   consistent ones are tried first, not merely the individually likeliest.
-3. *Verification.* Each hypothesis is checked against the image's spread
-   orientation map with the model view's dense edge samples (LINE-2D's trick,
-   cheap enough to test dozens of seeds).
-4. *Extension.* The best hypotheses are extended greedily: model edge samples
+   ``(x, y, α, s)``.
+3. *Verification.* Every seed is checked against the image's spread
+   orientation map with its model view's dense edge samples (LINE-2D's
+   trick, cheap enough for tens of thousands of seeds), scored as a
+   log-likelihood ratio object vs. clutter (:mod:`viewloc_core.edge_evidence`):
+   the seeds are ranked by what they explain in the image, not by how many
+   agree. The best few hundred are snapped onto the edges and judged again;
+   the best per image location are kept.
+4. *Extension.* The kept hypotheses are extended greedily: model edge samples
    pair with image edges under the current similarity and the similarity is
    re-fitted by weighted least squares (point-to-line), shrinking the gate.
 5. *Quality.* ``g(E, T) ≈ log P(H | E, T)`` over the feature pairings E
@@ -20,6 +23,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
@@ -30,6 +34,7 @@ from scipy.spatial import cKDTree
 
 from viewloc_core import similarity as sim2
 from viewloc_core.clutter_density import log_image_density
+from viewloc_core.edge_evidence import chance_rates, lay_over_templates
 from viewloc_core.features import (
     KIND_ARC,
     KIND_JUNCTION,
@@ -41,7 +46,6 @@ from viewloc_core.features import (
     wanted_bits,
 )
 from viewloc_core.model import ModelView, ObjectModel
-from viewloc_core.seed_votes import bin_supports, peak_bins
 from viewloc_core.seeding import seed_similarities
 from viewloc_core.similarity_fit import fit_similarities
 
@@ -64,33 +68,22 @@ class AlignConfig:
         Range of image scale relative to the training views.
     attr_gate : float
         Pairings further than this many attribute sigmas are not formed.
-    vote_xy_px, vote_angle_deg, vote_log2_scale : float
-        Bin sizes of the seed voting table.
-    max_peaks : int
-        Peaks of the location vote map searched for hypotheses.
-    hypotheses_per_peak : int
-        (view, angle, scale) vote bins per peak turned into hypotheses.
-    max_bins : int
-        Best (view, x, y, angle, scale) vote bins turned into hypotheses besides.
-    max_scored : int
-        Hypotheses (by quick coverage) whose g is computed.
-    max_hypotheses : int
-        Hypotheses extended on all edge samples after ranking by g.
-    max_alternatives : int
-        Other model views kept per image location for the 6D verification.
     max_pairings : int
         Most (image feature, model feature) pairings kept, strongest first
         (a paper-set image makes about 12,000; a 160-view textured model in
         a 400x300 real photo 1.8 million).
-    min_coverage : float
-        Hypotheses whose quick coverage is below this are dropped early.
+    screen_samples : int
+        Coarse edge samples per view of the first screen of the seeds.
+    max_screened : int
+        Seeds (by the first screen) judged on all coarse samples.
+    max_extended : int
+        Seeds (by their evidence) given the quick extension and judged again.
+    max_alternatives : int
+        Other model views kept per image location for the 6D verification.
     icp_radii_px : tuple of float
         Pairing gates of the successive extension steps (fine edge samples).
     coarse_radii_px : tuple of float
-        The same for the quick extension of every voted hypothesis.
-    coverage_weight : float
-        Hypotheses are ranked by ``g + coverage_weight * coverage``: g decides,
-        coverage breaks near-ties in favour of complete outlines.
+        The same for the quick extension of the best seeds.
     orientation_tol_deg : float
         Largest orientation difference of paired edge samples.
     """
@@ -98,20 +91,13 @@ class AlignConfig:
     min_scale: float = 0.3
     max_scale: float = 3.0
     attr_gate: float = 2.5
-    vote_xy_px: float = 12.0
-    vote_angle_deg: float = 20.0
-    vote_log2_scale: float = 0.35
-    max_peaks: int = 12
-    hypotheses_per_peak: int = 4
-    max_bins: int = 40
-    max_scored: int = 10
-    max_hypotheses: int = 5
-    max_alternatives: int = 2
     max_pairings: int = 40000
-    min_coverage: float = 0.25
+    screen_samples: int = 12
+    max_screened: int = 1500
+    max_extended: int = 300
+    max_alternatives: int = 2
     icp_radii_px: tuple[float, ...] = (4.0, 2.5, 1.5, 1.5)
     coarse_radii_px: tuple[float, ...] = (8.0, 4.0)
-    coverage_weight: float = 20.0
     orientation_tol_deg: float = 20.0
 
 
@@ -130,6 +116,10 @@ class Match2D:
         Fraction of the view's edge samples confirmed by image edges.
     n_pairs : int
         Number of feature pairings in E.
+    evidence : float
+        Log-likelihood ratio object vs. clutter of the view's edge samples
+        (:func:`edge_evidence`), estimated for the whole outline from the
+        coarse subset: how the match was ranked.
     alternatives : tuple of Match2D
         Other model views that fit about the same image location, best
         first (their ``alternatives`` are empty). A 2D similarity cannot
@@ -142,6 +132,7 @@ class Match2D:
     log_probability: float
     coverage: float
     n_pairs: int
+    evidence: float = 0.0
     alternatives: tuple[Match2D, ...] = ()
 
 
@@ -152,6 +143,10 @@ class ModelIndex:
     The edge samples of every view are padded to one length twice: a
     well-spread subset (``coarse_*``, screening) and all of them (``fine_*``,
     the final extension), so hypotheses of different views batch together.
+    ``coarse_px``, ``coarse_py`` and ``coarse_bins8`` are the coarse subset
+    in the types :func:`viewloc_core.edge_evidence.lay_over_templates` reads;
+    ``outline_px`` is the edge length of each view's whole outline at scale 1
+    (pixels), which its coarse evidence is scaled to.
     """
 
     view_of: NDArray[np.int64]
@@ -165,6 +160,10 @@ class ModelIndex:
     coarse_pts: F64
     coarse_bins: NDArray[np.int64]
     coarse_valid: NDArray[np.bool_]
+    coarse_px: NDArray[np.float32]
+    coarse_py: NDArray[np.float32]
+    coarse_bins8: NDArray[np.uint8]
+    outline_px: F64
     fine_pts: F64
     fine_theta: F64
     fine_bins: NDArray[np.int64]
@@ -215,6 +214,7 @@ def build_index(model: ObjectModel, coarse_points: int = 48) -> ModelIndex:
     fine_pts = np.zeros((len(views), n_fine, 2))
     fine_theta = np.zeros((len(views), n_fine))
     fine_valid = np.zeros((len(views), n_fine), bool)
+    outline_px = np.zeros(len(views))
     for i, v in enumerate(views):
         exy = v.edge_xy.astype(np.float64)
         eth = v.edge_theta.astype(np.float64)
@@ -224,12 +224,24 @@ def build_index(model: ObjectModel, coarse_points: int = 48) -> ModelIndex:
         coarse_pts[i, : len(pick)] = exy[pick]
         coarse_bins[i, : len(pick)] = orientation_bin(eth[pick])
         coarse_valid[i, : len(pick)] = True
+        outline_px[i] = _outline_length(exy)
     radius = model.f_train_px * model.diameter_mm / model.d0_mm / 2.0
     return ModelIndex(
         view_of, kind, xy, theta, scale, attrs, log_presence, trees,
-        coarse_pts, coarse_bins, coarse_valid, fine_pts, fine_theta, orientation_bin(fine_theta),
-        fine_valid, radius,
+        coarse_pts, coarse_bins, coarse_valid,
+        np.ascontiguousarray(coarse_pts[..., 0], np.float32),
+        np.ascontiguousarray(coarse_pts[..., 1], np.float32), coarse_bins.astype(np.uint8),
+        outline_px, fine_pts, fine_theta, orientation_bin(fine_theta), fine_valid, radius,
     )
+
+
+def _outline_length(edge_xy: F64) -> float:
+    """Edge length (pixels) that evenly spread edge samples (N, 2) stand for:
+    their number times their spacing."""
+    if len(edge_xy) < 2:
+        return float(len(edge_xy))
+    nn_dist, _ = cKDTree(edge_xy).query(edge_xy, k=2)
+    return float(len(edge_xy) * np.median(nn_dist[:, 1]))
 
 
 def spread_subset(pts: F64, n: int, rng: np.random.Generator) -> NDArray[np.int64]:
@@ -381,107 +393,41 @@ def extend(
                        config.icp_radii_px, config.orientation_tol_deg, robust=True)[0]
 
 
-def _bin_keys(views: NDArray[np.int64], sims: F64, config: AlignConfig,
-              with_position: bool) -> NDArray[np.int64]:
-    """One int64 key per seed for its (view, [x, y,] α, s) vote bin.
+def outline_evidence(index: ModelIndex, feats: ImageFeatures, views: NDArray[np.int64],
+                     sims: F64, chance: F64, n_samples: int | None = None) -> F64:
+    """Evidence of H hypotheses (model view, similarity) for their whole outline.
 
-    Each field is offset to be non-negative and clipped below 2^12, so the
-    packed key stays below 2^63 with all five fields.
-    """
-    fields = []
-    if with_position:
-        fields += [np.floor(sims[:, 0] / config.vote_xy_px).astype(np.int64) + 2048,
-                   np.floor(sims[:, 1] / config.vote_xy_px).astype(np.int64) + 2048]
-    fields += [
-        np.floor((sims[:, 2] + np.pi) / np.radians(config.vote_angle_deg)).astype(np.int64),
-        np.floor(np.log2(sims[:, 3]) / config.vote_log2_scale).astype(np.int64) + 2048,
-    ]
-    key = views.astype(np.int64)
-    for f in fields:
-        key = key * 4096 + np.clip(f, 0, 4095)
-    return key
-
-
-def _strongest_seeds_of_best_bins(keys: NDArray[np.int64], vote: F64,
-                                  n_bins: int) -> NDArray[np.int64]:
-    """Index of the strongest seed in each of the ``n_bins`` best-supported bins, best first."""
-    support, strongest = bin_supports(np.ascontiguousarray(keys, np.int64),
-                                      np.ascontiguousarray(vote, np.float64),
-                                      np.arange(len(keys), dtype=np.int64))
-    return strongest[np.argsort(-support)[:n_bins]]
-
-
-def _vote_bins(views: NDArray[np.int64], sims: F64, vote: F64, config: AlignConfig
-               ) -> tuple[NDArray[np.int64], F64]:
-    """Hypotheses from the ``max_bins`` best-supported (view, x, y, α, s) bins.
-
-    Parameters and returns as :func:`_vote_hypotheses`.
-    """
-    best = _strongest_seeds_of_best_bins(_bin_keys(views, sims, config, True), vote,
-                                         config.max_bins)
-    return views[best], sims[best]
-
-
-def _vote_hypotheses(views: NDArray[np.int64], sims: F64, vote: F64,
-                     shape: tuple[int, int], config: AlignConfig
-                     ) -> tuple[NDArray[np.int64], F64]:
-    """Hypotheses (model view, similarity) from seed votes, location first.
-
-    Seeds first vote for where the object's reference point is, pooled over
-    model views, angles and scales: neighbouring model views describe the same
-    object, so the evidence of all of them adds up at the true location even
-    when each view alone has only a few consistent seeds. At each peak of
-    that location map the seeds nearby then vote for (view, angle, scale),
-    and the best-supported combinations become hypotheses.
+    The log-likelihood ratio object vs. clutter of each view's coarse edge
+    samples (:func:`viewloc_core.edge_evidence.lay_over_templates`), per
+    sample, times the number of samples its whole outline makes in the image
+    (the outline's length at the hypothesis's scale, over the sample
+    spacing): the same unit as the view search's evidence, so a view that
+    explains the whole object beats one that explains a part of it as well.
 
     Parameters
     ----------
-    views : (N,) int
-        Model view of each seed.
-    sims : (N, 4) float
-        Seed similarities model view -> image.
-    vote : (N,) float
-        Vote of each seed (> 0).
-    shape : (int, int)
-        Image height and width (px).
-    config : AlignConfig
+    index : ModelIndex
+    feats : ImageFeatures
+        The image, with its spread orientation map.
+    views : (H,) int
+        Model view of each hypothesis.
+    sims : (H, 4) float64
+        Model view -> image similarities.
+    chance : (ORIENTATION_BINS,) float64
+        :func:`viewloc_core.edge_evidence.chance_rates` of the image.
+    n_samples : int, optional
+        Use only the first this many coarse samples (still spread over the
+        outline: the subset is in farthest-point order); all when None.
 
     Returns
     -------
-    views : (H,) int64
-    sims : (H, 4) float64
+    (H,) float64
     """
-    cell = config.vote_xy_px / 2.0
-    h, w = shape
-    gx = np.floor(sims[:, 0] / cell).astype(np.int64) + 2
-    gy = np.floor(sims[:, 1] / cell).astype(np.int64) + 2
-    gw, gh = int(np.ceil(w / cell)) + 4, int(np.ceil(h / cell)) + 4
-    inside = (gx >= 0) & (gx < gw) & (gy >= 0) & (gy < gh)
-    # bincount on flat cell indices: the same sums as np.add.at, far faster.
-    raw = np.bincount(gy[inside] * gw + gx[inside], weights=vote[inside],
-                      minlength=gh * gw).reshape(gh, gw).astype(np.float32)
-    acc = np.asarray(cv2.GaussianBlur(raw, (0, 0), 1.0), dtype=np.float32)
-    peaks = (acc >= cv2.dilate(acc, np.ones((5, 5), np.uint8))) & (acc > 0)
-    py, px = np.nonzero(peaks)
-    order = np.argsort(-acc[py, px])[: config.max_peaks]
-    centres = np.stack([(px[order] - 2 + 0.5) * cell, (py[order] - 2 + 0.5) * cell], axis=1)
-    # A peak, at the centre of column p, is within reach of seeds in columns
-    # p-2..p+2 only (the reach of two cells ends mid-column, far from rounding).
-    support, strongest, bins_per_peak = peak_bins(
-        np.ascontiguousarray(sims[:, 0]), np.ascontiguousarray(sims[:, 1]),
-        np.clip(gx, -3, gw + 2), _bin_keys(views, sims, config, False),
-        np.ascontiguousarray(vote, np.float64), np.ascontiguousarray(centres, np.float64),
-        px[order].astype(np.int64), 2.0 * cell)
-    picked = []
-    start = 0
-    for count in bins_per_peak.tolist():
-        if count:
-            peak = slice(start, start + count)
-            picked.append(strongest[peak][np.argsort(-support[peak])
-                                          [: config.hypotheses_per_peak]])
-        start += count
-    best = np.concatenate(picked) if picked else np.zeros(0, np.int64)
-    return views[best], sims[best]
+    n = index.coarse_px.shape[1] if n_samples is None else n_samples
+    llr, _, n_valid, _ = lay_over_templates(
+        feats, index.coarse_px[:, :n], index.coarse_py[:, :n], index.coarse_bins8[:, :n],
+        index.coarse_valid[:, :n], views, sims, chance)
+    return llr / np.maximum(n_valid, 1) * index.outline_px[views] * sims[:, 3]
 
 
 def coverage_many(feats: ImageFeatures, sims: F64, pts: F64, bins: NDArray[np.int64],
@@ -670,7 +616,7 @@ def align(
     Returns
     -------
     list of Match2D
-        Best first by coverage, then g; empty when nothing plausible is found.
+        Best first by evidence; empty when nothing plausible is found.
     """
     k, j, w = _pairings(index, feats, config)
     if len(k) == 0:
@@ -680,65 +626,90 @@ def align(
         # the weakest pairings cost seconds and almost never seed the answer.
         # Weakest here means least likely under the model and most common in
         # this image (a checkerboard's junctions pair with every right angle
-        # of the model): hard bench set, 38 -> 34 of 80 missed. The votes
-        # keep the fixed clutter density: the image's estimate decides only
-        # what the budget is spent on (voting by it in every image lost 2 of
-        # 100 paper images and 5 clean hard ones).
+        # of the model): hard bench set, 38 -> 34 of 80 missed.
         keep = np.argpartition(-(w + _log_rarity(feats)[k]), config.max_pairings)
         keep = keep[: config.max_pairings]
         k, j, w = k[keep], j[keep], w[keep]
     sims, pairing = _seeds(index, feats, k, j, config)
-    j2, w2 = j[pairing], w[pairing]
     if len(sims) == 0:
         return []
-    # Two votes, united: per location pooled over views (finds objects whose
-    # evidence is spread over neighbouring views) and per (view, x, y, α, s)
-    # bin (finds objects that one view explains with many consistent seeds).
-    # A seed's vote is its positive log odds (plus a floor, so any seed counts).
-    vote = np.maximum(w2, 0.0) + 0.5
-    loc_views, loc_sims = _vote_hypotheses(index.view_of[j2], sims, vote, feats.shape, config)
-    bin_views, bin_sims = _vote_bins(index.view_of[j2], sims, vote, config)
-    hyp_views = np.concatenate([loc_views, bin_views])
-    hyp_sims = np.concatenate([loc_sims, bin_sims])
-    if len(hyp_views) == 0:
-        return []
-    # Quick extension of every voted hypothesis on its view's coarse edge
-    # subset, all at once, so that seeds a few pixels off are judged after,
-    # not before, they snap in.
-    pts = index.coarse_pts[hyp_views]
-    bins = index.coarse_bins[hyp_views]
-    valid = index.coarse_valid[hyp_views]
+    views = index.view_of[j[pairing]]
+    # Every seed is judged by what its view's edge samples find in the image,
+    # against how often edges occur there by chance. In textured scenes the
+    # true location's seeds are a few hundred among tens of thousands and
+    # agree too loosely in view, angle and scale to win a vote (hard bench
+    # set, 640x480: the first location was right in 46 of 80 images with a
+    # (view, x, y, angle, scale) vote and edge coverage, 64 with this).
+    chance = chance_rates(feats)
+    if len(sims) > config.max_screened:
+        # A first screen on a few samples of each view's outline: the seeds
+        # that miss most of them miss most of the rest too (hard bench set:
+        # the same locations found with 12 samples as with all 48, at a
+        # third of the cost).
+        evidence = outline_evidence(index, feats, views, sims, chance, config.screen_samples)
+        best = np.argpartition(-evidence, config.max_screened)[: config.max_screened]
+        views, sims = views[best], sims[best]
+    evidence = outline_evidence(index, feats, views, sims, chance)
+    best = np.argsort(-evidence, kind="stable")[: config.max_extended]
+    views, sims = views[best], sims[best]
+    # The best seeds snap onto the edges (a seed is a few pixels and degrees
+    # off) and are judged again.
+    bins = index.coarse_bins[views]
     theta_c = np.asarray((bins + 0.5) * (np.pi / ORIENTATION_BINS), dtype=np.float64)
-    fitted_all = extend_many(feats, hyp_sims, pts, theta_c, valid, config.coarse_radii_px,
-                              config.orientation_tol_deg)
-    cov_all = coverage_many(feats, fitted_all, pts, bins, valid)
-    order = np.argsort(-cov_all)[: config.max_scored]
-    order = order[cov_all[order] >= config.min_coverage]
-    g_scored, _ = log_probability_many([model.model_views[v] for v in hyp_views[order]],
-                                       feats, fitted_all[order])
-    scored = [(float(gval) + config.coverage_weight * cov_all[n], int(hyp_views[n]),
-               fitted_all[n], float(cov_all[n])) for gval, n in zip(g_scored, order, strict=True)]
-    scored.sort(key=lambda item: -item[0])
-    # The best hypotheses extended on all edge samples of their views, at once.
-    best_views = np.array([view for _, view, _, _ in scored[: config.max_hypotheses]], np.int64)
-    fine_pts, fine_theta, fine_bins, fine_valid = index.fine_samples(best_views)
-    fitted_best = extend_many(
-        feats, np.reshape([sim for _, _, sim, _ in scored[: config.max_hypotheses]], (-1, 4)),
-        fine_pts, fine_theta, fine_valid, config.icp_radii_px, config.orientation_tol_deg,
-        robust=True)
-    cov_best = coverage_many(feats, fitted_best, fine_pts, fine_bins, fine_valid)
-    g_best, n_pairs = log_probability_many([model.model_views[v] for v in best_views], feats,
-                                           fitted_best)
-    matches = [Match2D(int(v), f, float(gv), float(c), int(n)) for v, f, gv, c, n in zip(
-        best_views, fitted_best, g_best, cov_best, n_pairs, strict=True)]
-    # Pope & Lowe rank by g; coverage alone prefers small views that match
-    # a part of the object (one plate of a barbell) perfectly.
-    matches.sort(key=lambda m: -(m.log_probability + config.coverage_weight * m.coverage))
-    # Hypotheses not extended on all samples still serve as alternatives.
-    rest = [Match2D(view, sim, rank - config.coverage_weight * cov, cov, 0)
-            for rank, view, sim, cov in scored[config.max_hypotheses:]]
-    return suppress_duplicates(matches + rest, index.view_radius_px, max_matches,
-                               config.max_alternatives)
+    fitted = extend_many(feats, sims, index.coarse_pts[views], theta_c, index.coarse_valid[views],
+                         config.coarse_radii_px, config.orientation_tol_deg)
+    evidence = outline_evidence(index, feats, views, fitted, chance)
+    # No more likely object than clutter (or wholly outside the image): no match.
+    order = np.argsort(-evidence, kind="stable")
+    order = order[evidence[order] > 0]
+    views, fitted, evidence = views[order], fitted[order], evidence[order]
+
+    def match(n: int) -> Match2D:
+        return Match2D(int(views[n]), fitted[n], 0.0, 0.0, 0, float(evidence[n]))
+
+    kept = [replace(match(i), alternatives=tuple(match(a) for a in alts))
+            for i, alts in _suppress(fitted, views, index.view_radius_px, max_matches,
+                                     config.max_alternatives)]
+    return _with_quality(model, index, feats, kept, config)
+
+
+def _with_quality(model: ObjectModel, index: ModelIndex, feats: ImageFeatures,
+                  matches: list[Match2D], config: AlignConfig) -> list[Match2D]:
+    """The matches extended on all their view's edge samples, with g and
+    coverage; their alternatives keep their quick fit and get g and coverage."""
+    if not matches:
+        return []
+    views = np.array([m.model_view for m in matches], np.int64)
+    fine_pts, fine_theta, fine_bins, fine_valid = index.fine_samples(views)
+    fitted = extend_many(feats, np.array([m.sim for m in matches]), fine_pts, fine_theta,
+                         fine_valid, config.icp_radii_px, config.orientation_tol_deg,
+                         robust=True)
+    cov = coverage_many(feats, fitted, fine_pts, fine_bins, fine_valid)
+    g, n_pairs = log_probability_many([model.model_views[v] for v in views], feats, fitted)
+    alts = [a for m in matches for a in m.alternatives]
+    alt_views = np.array([a.model_view for a in alts], np.int64)
+    alt_sims = np.reshape([a.sim for a in alts], (-1, 4))
+    alt_cov = coverage_many(feats, alt_sims, index.coarse_pts[alt_views],
+                            index.coarse_bins[alt_views], index.coarse_valid[alt_views])
+    alt_g, alt_pairs = log_probability_many([model.model_views[v] for v in alt_views], feats,
+                                            alt_sims)
+    out = []
+    n_alt = 0
+    for i, m in enumerate(matches):
+        with_quality = tuple(
+            replace(a, log_probability=float(alt_g[n]), coverage=float(alt_cov[n]),
+                    n_pairs=int(alt_pairs[n]))
+            for n, a in enumerate(m.alternatives, start=n_alt))
+        n_alt += len(m.alternatives)
+        out.append(replace(m, sim=fitted[i], log_probability=float(g[i]), coverage=float(cov[i]),
+                           n_pairs=int(n_pairs[i]), alternatives=with_quality))
+    return out
+
+
+#: Hypotheses of one model view at one location differing in in-plane angle
+#: by more than this are different alternatives (an outline that fits
+#: turned by 180° as well as upright is two hypotheses, not one).
+DISTINCT_ANGLE_RAD = math.radians(30.0)
 
 
 def suppress_duplicates(matches: list[Match2D], view_radius_px: float,
@@ -746,23 +717,52 @@ def suppress_duplicates(matches: list[Match2D], view_radius_px: float,
     """Non-maximum suppression: keep the best match per image location.
 
     Matches suppressed by a kept one become its alternatives when they are of
-    another model view (up to ``max_alternatives``, in the order given).
+    another model view, or of the same at an angle more than
+    ``DISTINCT_ANGLE_RAD`` from each one already there (up to
+    ``max_alternatives``, in the order given).
     """
-    kept: list[Match2D] = []
-    alternatives: list[list[Match2D]] = []
-    for m in matches:
-        radius = 0.5 * view_radius_px * m.sim[3]
-        near = [i for i, o in enumerate(kept) if np.hypot(*(m.sim[:2] - o.sim[:2])) <= radius]
-        if not near:
-            if len(kept) < max_matches:
-                kept.append(m)
-                alternatives.append([])
-            continue
-        i = near[0]
-        views = {kept[i].model_view} | {a.model_view for a in alternatives[i]}
-        if len(alternatives[i]) < max_alternatives and m.model_view not in views:
-            alternatives[i].append(m)
-    return [replace(m, alternatives=tuple(a)) for m, a in zip(kept, alternatives, strict=True)]
+    if not matches:
+        return []
+    groups = _suppress(np.array([m.sim for m in matches]),
+                       np.array([m.model_view for m in matches]), view_radius_px,
+                       max_matches, max_alternatives)
+    return [replace(matches[i], alternatives=tuple(matches[a] for a in alts))
+            for i, alts in groups]
+
+
+def _suppress(sims: F64, views: NDArray[np.int64], view_radius_px: float, max_matches: int,
+              max_alternatives: int) -> list[tuple[int, list[int]]]:
+    """:func:`suppress_duplicates` on arrays: (index kept, indices of its
+    alternatives) per location, for hypotheses (H, 4) given best first.
+
+    A hypothesis within half a view radius (at its own scale) of a kept one
+    belongs to the first such, which is earlier in the order; the first one
+    that belongs to none is kept next.
+    """
+    radius = 0.5 * view_radius_px * sims[:, 3]
+    owner = np.full(len(sims), -1, np.int64)
+    kept: list[int] = []
+    while len(kept) < max_matches:
+        free = np.flatnonzero(owner < 0)
+        if len(free) == 0:
+            break
+        i, rest = int(free[0]), free[1:]
+        kept.append(i)
+        owner[i] = i
+        near = np.hypot(sims[rest, 0] - sims[i, 0], sims[rest, 1] - sims[i, 1]) <= radius[rest]
+        owner[rest[near]] = i
+    groups = []
+    for i in kept:
+        alts: list[int] = []
+        for n in np.flatnonzero(owner == i)[1:].tolist():
+            if len(alts) == max_alternatives:
+                break
+            if all(views[n] != views[o]
+                   or abs(math.remainder(sims[n, 2] - sims[o, 2], 2 * math.pi))
+                   > DISTINCT_ANGLE_RAD for o in (i, *alts)):
+                alts.append(n)
+        groups.append((i, alts))
+    return groups
 
 
 def refine_at_model_scale(

@@ -429,8 +429,7 @@ class _Clusterer:
         # Training images are square; their centre is the model-view origin.
         self._centre = centre_px
         self.align_config = AlignConfig(
-            min_scale=0.8, max_scale=1.25, max_scored=6, max_hypotheses=2,
-            icp_radii_px=(6.0, 3.0, 1.5),
+            min_scale=0.8, max_scale=1.25, max_extended=60, icp_radii_px=(6.0, 3.0, 1.5),
         )
         self.clusters: list[_Cluster] = []
         self.member_of: list[int] = []

@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from viewloc_core import normal_search, sample_evidence, seed_votes, seeding, similarity_fit
+from viewloc_core import normal_search, sample_evidence, seeding, similarity_fit
 from viewloc_core import similarity as sim2
 from viewloc_core.align import (
     AlignConfig,
@@ -125,7 +125,6 @@ def warm_up() -> None:
     start-up, so that no request waits for the compiler)."""
     similarity_fit.warm_up()
     seeding.warm_up()
-    seed_votes.warm_up()
     sample_evidence.warm_up()
     normal_search.warm_up()
 

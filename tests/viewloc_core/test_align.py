@@ -5,6 +5,8 @@ from dataclasses import replace
 import cv2
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from tests.viewloc_core.conftest import render_scene
 from viewloc_core import similarity as sim2
@@ -153,38 +155,11 @@ def test_blank_image_gives_no_match(bracket_model):
     assert align(bracket_model, model_index(bracket_model), feats) == []
 
 
-def test_location_vote_pools_views_and_finds_each_cluster():
-    """Seeds of several views that agree on a location outvote a larger
-    single-view cluster of inconsistent seeds, and every peak gets hypotheses."""
-    from viewloc_core.align import AlignConfig, _vote_hypotheses
-
-    rng = np.random.default_rng(0)
-    # Object A at (100, 80): 30 seeds spread over 6 views, angles and scales.
-    a_xy = np.array([100.0, 80.0]) + rng.normal(0, 2.0, (30, 2))
-    a = np.column_stack([a_xy, rng.uniform(-0.2, 0.2, 30), rng.uniform(0.9, 1.1, 30)])
-    a_views = np.repeat(np.arange(6), 5)
-    # Clutter: 40 seeds of one view scattered over the image.
-    c = np.column_stack([rng.uniform(0, 320, (40, 2)), rng.uniform(-3, 3, 40), np.ones(40)])
-    # Object B at (250, 200): 12 seeds of view 7.
-    b = np.column_stack([np.array([250.0, 200.0]) + rng.normal(0, 2.0, (12, 2)),
-                         np.full(12, 1.0), np.full(12, 0.7)])
-    sims = np.vstack([a, c, b])
-    views = np.concatenate([a_views, np.full(40, 9), np.full(12, 7)])
-    views_out, sims_out = _vote_hypotheses(views, sims, np.ones(len(sims)), (240, 320),
-                                           AlignConfig())
-    d_a = np.hypot(sims_out[:, 0] - 100, sims_out[:, 1] - 80)
-    d_b = np.hypot(sims_out[:, 0] - 250, sims_out[:, 1] - 200)
-    # The strongest peak comes first: its hypotheses are object A's views.
-    assert d_a[0] < 8 and views_out[0] in range(6)
-    assert np.any(d_b < 8) and set(views_out[d_b < 8]) == {7}
-    assert len(views_out) <= AlignConfig().max_peaks * AlignConfig().hypotheses_per_peak
-
-
 def test_suppressed_views_at_a_location_become_alternatives():
     from viewloc_core.align import Match2D, suppress_duplicates
 
-    def m(view, x, g):
-        return Match2D(view, np.array([x, 50.0, 0.0, 1.0]), g, 0.8, 10)
+    def m(view, x, g, angle=0.0):
+        return Match2D(view, np.array([x, 50.0, angle, 1.0]), g, 0.8, 10)
 
     out = suppress_duplicates(
         [m(0, 100, 9), m(1, 103, 8), m(0, 101, 7), m(2, 200, 6), m(3, 98, 5), m(4, 99, 4)],
@@ -193,48 +168,83 @@ def test_suppressed_views_at_a_location_become_alternatives():
     # Other views only, at most two, in the order given.
     assert [a.model_view for a in out[0].alternatives] == [1, 3]
     assert out[1].alternatives == ()
+    # The same view turned far enough is another hypothesis; turned a little, not.
+    out = suppress_duplicates([m(0, 100, 9), m(0, 101, 8, 0.3), m(0, 99, 7, np.pi)],
+                              view_radius_px=40.0, max_matches=5, max_alternatives=2)
+    assert [a.sim[2] for a in out[0].alternatives] == [np.pi]
 
 
-def test_strongest_seed_of_each_best_bin_matches_a_plain_count():
-    """Bins ranked by summed vote; in each, the strongest seed, the first on ties."""
-    from viewloc_core.align import _strongest_seeds_of_best_bins
+def _suppress_in_order(matches, view_radius_px, max_matches, max_alternatives):
+    """Reference: the plain sequential non-maximum suppression."""
+    kept, alternatives = [], []
+    for m in matches:
+        radius = 0.5 * view_radius_px * m.sim[3]
+        near = [i for i, o in enumerate(kept) if np.hypot(*(m.sim[:2] - o.sim[:2])) <= radius]
+        if not near:
+            if len(kept) < max_matches:
+                kept.append(m)
+                alternatives.append([])
+            continue
+        group = [kept[near[0]], *alternatives[near[0]]]
+        distinct = all(m.model_view != o.model_view
+                       or abs(sim2.wrap_angle(m.sim[2] - o.sim[2])) > np.radians(30.0)
+                       for o in group)
+        if len(alternatives[near[0]]) < max_alternatives and distinct:
+            alternatives[near[0]].append(m)
+    return [(k, a) for k, a in zip(kept, alternatives, strict=True)]
 
-    rng = np.random.default_rng(3)
-    keys = rng.integers(0, 40, 500) * 1000
-    # Few vote levels per bin make ties within bins; a per-bin offset keeps
-    # the bin supports distinct (their order on ties is not specified).
-    vote = rng.integers(1, 6, 500) + np.sqrt(keys / 1000 + 2) / 100
-    got = _strongest_seeds_of_best_bins(keys, vote, 10)
-    bins = sorted(set(keys.tolist()))
-    support = np.array([vote[keys == b].sum() for b in bins])
-    expected = []
-    for i in np.argsort(-support, kind="stable")[:10]:
-        members = np.flatnonzero(keys == bins[i])
-        expected.append(int(members[np.argmax(vote[members])]))
-    assert got.tolist() == expected
-    assert len(_strongest_seeds_of_best_bins(np.zeros(0, np.int64), np.zeros(0), 3)) == 0
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.integers(1, 60), st.integers(1, 6), st.integers(0, 3))
+def test_suppression_equals_the_sequential_loop(seed, n, max_matches, max_alternatives):
+    """Kept matches and their alternatives are those of a plain loop over the
+    matches in order, whatever their scales and however they crowd."""
+    from viewloc_core.align import Match2D, suppress_duplicates
+
+    rng = np.random.default_rng(seed)
+    sims = np.column_stack([rng.uniform(0, 120, (n, 2)), rng.uniform(-3, 3, n),
+                            rng.uniform(0.5, 2.0, n)])
+    matches = [Match2D(int(v), s, 0.0, 0.5, 0) for v, s in zip(rng.integers(0, 4, n), sims,
+                                                                strict=True)]
+    got = suppress_duplicates(matches, 40.0, max_matches, max_alternatives)
+    expected = _suppress_in_order(matches, 40.0, max_matches, max_alternatives)
+    assert [m.sim.tolist() for m in got] == [k.sim.tolist() for k, _ in expected]
+    assert [[a.sim.tolist() for a in m.alternatives] for m in got] == [
+        [a.sim.tolist() for a in alts] for _, alts in expected]
 
 
-def test_peak_neighbourhoods_hold_exactly_the_seeds_within_reach():
-    """Each peak's hypotheses come from the seeds within two cells of it,
-    however far the others are spread (the strip search must miss none)."""
-    from viewloc_core.align import AlignConfig, _vote_hypotheses
+def test_outline_evidence_favours_the_true_similarity(renderer, bracket_mesh, bracket_model):
+    """The evidence of a model view at its true similarity beats the same view
+    shifted, turned or rescaled; a screen on the first samples is the same
+    sum over fewer samples; and a view half outside the image is not
+    credited for the samples it cannot see."""
+    from viewloc_core.align import outline_evidence
+    from viewloc_core.edge_evidence import chance_rates, lay_over_templates
 
-    config = AlignConfig(max_peaks=1, hypotheses_per_peak=50)
-    reach = config.vote_xy_px
-    centre = np.array([(12 + 0.5) * reach / 2, (9 + 0.5) * reach / 2])  # a cell centre
-    rng = np.random.default_rng(5)
-    # A strong cluster on the centre, and single seeds of their own bins in
-    # a ring just inside and just outside the reach (other views, so every
-    # seed is its own (view, angle, scale) bin).
-    n = 60
-    ang = rng.uniform(0, 2 * np.pi, n)
-    radius = np.where(np.arange(n) % 2 == 0, reach - 0.01, reach + 0.01)
-    ring = np.column_stack([centre[0] + radius * np.cos(ang), centre[1] + radius * np.sin(ang),
-                            np.zeros(n), np.ones(n)])
-    core = np.tile([centre[0], centre[1], 0.0, 1.0], (20, 1))
-    sims = np.vstack([core, ring])
-    views = np.concatenate([np.zeros(20, np.int64), np.arange(1, n + 1)])
-    views_out, _ = _vote_hypotheses(views, sims, np.ones(len(sims)), (300, 400), config)
-    inside = set((np.flatnonzero(radius < reach) + 1).tolist())
-    assert set(views_out.tolist()) == inside | {0}
+    model = bracket_model
+    t = int(np.flatnonzero(np.all(model.training.sim_to_model == [0, 0, 0, 1], axis=1))[0])
+    view = int(model.training.model_view[t])
+    image, c = _training_image(renderer, bracket_mesh, model, t)
+    feats = extract_features(image)
+    index = model_index(model)
+    chance = chance_rates(feats)
+    true_sim = np.array([c, c, 0.0, 1.0])
+    sims = np.array([true_sim, true_sim + [12.0, -9.0, 0.0, 0.0], true_sim + [0.0, 0.0, 0.5, 0.0],
+                     true_sim * [1, 1, 1, 1.3]])
+    views = np.full(4, view)
+    evidence = outline_evidence(index, feats, views, sims, chance)
+    assert evidence[0] > 0 and np.all(evidence[0] > evidence[1:])
+    # The screen: the same per-sample evidence on the first 12 samples.
+    few = outline_evidence(index, feats, views, sims, chance, 12)
+    llr, _, n_valid, _ = lay_over_templates(
+        feats, index.coarse_px[:, :12].copy(), index.coarse_py[:, :12].copy(),
+        index.coarse_bins8[:, :12].copy(), index.coarse_valid[:, :12].copy(), views, sims, chance)
+    np.testing.assert_allclose(few, llr / n_valid * index.outline_px[view] * sims[:, 3])
+    # With the image cut through the object, the view loses the evidence of
+    # the half it cannot see, but its samples there cost nothing either.
+    cut = int(c)
+    half = extract_features(np.ascontiguousarray(image[:, cut:]))
+    at_edge = np.array([[c - cut, c, 0.0, 1.0]])
+    assert 0 < outline_evidence(index, half, views[:1], at_edge, chance)[0] < evidence[0]
+
+
