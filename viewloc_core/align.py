@@ -79,7 +79,8 @@ class AlignConfig:
     max_extended : int
         Seeds (by their evidence) given the quick extension and judged again.
     max_alternatives : int
-        Other model views kept per image location for the 6D verification.
+        Other hypotheses kept per image location for the 6D verification
+        (see :func:`suppress_duplicates`).
     icp_radii_px : tuple of float
         Pairing gates of the successive extension steps (fine edge samples).
     coarse_radii_px : tuple of float
@@ -118,7 +119,7 @@ class Match2D:
         Number of feature pairings in E.
     evidence : float
         Log-likelihood ratio object vs. clutter of the view's edge samples
-        (:func:`edge_evidence`), estimated for the whole outline from the
+        (:func:`outline_evidence`), estimated for the whole outline from the
         coarse subset: how the match was ranked.
     alternatives : tuple of Match2D
         Other model views that fit about the same image location, best
@@ -224,7 +225,7 @@ def build_index(model: ObjectModel, coarse_points: int = 48) -> ModelIndex:
         coarse_pts[i, : len(pick)] = exy[pick]
         coarse_bins[i, : len(pick)] = orientation_bin(eth[pick])
         coarse_valid[i, : len(pick)] = True
-        outline_px[i] = _outline_length(exy)
+        outline_px[i] = len(exy) * sample_spacing_px(exy)
     radius = model.f_train_px * model.diameter_mm / model.d0_mm / 2.0
     return ModelIndex(
         view_of, kind, xy, theta, scale, attrs, log_presence, trees,
@@ -235,13 +236,13 @@ def build_index(model: ObjectModel, coarse_points: int = 48) -> ModelIndex:
     )
 
 
-def _outline_length(edge_xy: F64) -> float:
-    """Edge length (pixels) that evenly spread edge samples (N, 2) stand for:
-    their number times their spacing."""
+def sample_spacing_px(edge_xy: F64) -> float:
+    """Spacing (pixels) of edge samples (N, 2) spread evenly along the edges:
+    the edge length each one stands for (1 when there are fewer than 2)."""
     if len(edge_xy) < 2:
-        return float(len(edge_xy))
+        return 1.0
     nn_dist, _ = cKDTree(edge_xy).query(edge_xy, k=2)
-    return float(len(edge_xy) * np.median(nn_dist[:, 1]))
+    return float(np.median(nn_dist[:, 1]))
 
 
 def spread_subset(pts: F64, n: int, rng: np.random.Generator) -> NDArray[np.int64]:

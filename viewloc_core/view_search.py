@@ -25,10 +25,9 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial import cKDTree
 
 from viewloc_core import similarity as sim2
-from viewloc_core.align import coverage_many, extend_many, spread_subset
+from viewloc_core.align import coverage_many, extend_many, sample_spacing_px, spread_subset
 from viewloc_core.edge_evidence import lay_over_templates
 from viewloc_core.features import (
     ImageFeatures,
@@ -126,11 +125,7 @@ def build_templates(model: ObjectModel) -> ViewTemplates:
         valid[t, :n] = True
         pick = spread_subset(xy, COARSE_POINTS, rng)
         coarse[t] = np.resize(pick, COARSE_POINTS)
-        if n >= 2:
-            # Samples are spread evenly along the edges, so their spacing is
-            # the edge length each one stands for.
-            nn_dist, _ = cKDTree(xy).query(xy, k=2)
-            length[t] = float(np.median(nn_dist[:, 1]))
+        length[t] = sample_spacing_px(xy)
     bins = orientation_bin(theta)
     px = np.ascontiguousarray(pts[..., 0], dtype=np.float32)
     py = np.ascontiguousarray(pts[..., 1], dtype=np.float32)
