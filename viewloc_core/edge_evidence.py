@@ -59,14 +59,9 @@ def lay_over_templates(
     ----------
     feats : ImageFeatures
         The image, with its spread orientation map.
-    px, py : (T, P) float32
-        Sample positions of the templates, template pixels.
-    bins : (T, P) uint8
-        Their orientation bins.
-    valid : (T, P) bool
-        Real samples (not padding).
-    rows : (H,) int
-        Template row of each hypothesis.
+    px, py, bins, valid, rows
+        The templates (T, P) and the template row of each hypothesis (H,),
+        as :func:`viewloc_core.sample_evidence.lay_over` takes them.
     sims : (H, 4) float64
         Template frame -> image similarities ``(x, y, angle_rad, scale)``.
     chance : (ORIENTATION_BINS,) float64
@@ -74,15 +69,9 @@ def lay_over_templates(
 
     Returns
     -------
-    llr : (H,) float64
-        Log-likelihood ratio object vs. clutter summed over the samples
-        inside the image (samples outside are unknown and add nothing).
-    hits : (H,) int64
-        Samples that found an edge of their orientation.
-    n_valid : (H,) int64
-        Valid samples.
-    llr_all_found : (H,) float64
-        The llr had every sample inside the image found its edge.
+    llr, hits, n_valid, llr_all_found
+        Per hypothesis, as :func:`viewloc_core.sample_evidence.lay_over`
+        returns them (samples outside the image add nothing).
     """
     log_hit = np.log(TRUE_HIT_RATE / chance)
     log_miss = np.log((1.0 - TRUE_HIT_RATE) / (1.0 - chance))
