@@ -425,9 +425,14 @@ def outline_evidence(index: ModelIndex, feats: ImageFeatures, views: NDArray[np.
     (H,) float64
     """
     n = index.coarse_px.shape[1] if n_samples is None else n_samples
+    # Contiguous copies of the first n columns ((V, n), small): the kernel is
+    # compiled (and warmed up) for C-ordered templates only, and a column
+    # slice would make numba compile a second version at the first request.
     llr, _, n_valid, _ = lay_over_templates(
-        feats, index.coarse_px[:, :n], index.coarse_py[:, :n], index.coarse_bins8[:, :n],
-        index.coarse_valid[:, :n], views, sims, chance)
+        feats, np.ascontiguousarray(index.coarse_px[:, :n]),
+        np.ascontiguousarray(index.coarse_py[:, :n]),
+        np.ascontiguousarray(index.coarse_bins8[:, :n]),
+        np.ascontiguousarray(index.coarse_valid[:, :n]), views, sims, chance)
     return llr / np.maximum(n_valid, 1) * index.outline_px[views] * sims[:, 3]
 
 
