@@ -6,7 +6,7 @@ import pytest
 from tests.viewloc_core.conftest import render_scene
 from viewloc_core.camera import Camera
 from viewloc_core.detection import Detection, Similarity2D
-from viewloc_core.localize import GOOD_FIT_FRACTION, LocalizeOptions, _ranked, localize
+from viewloc_core.localize import GOOD_FIT_FRACTION, LocalizeOptions, _Fitted, _ranked, localize
 from viewloc_core.pose import Pose
 from viewloc_core.view_sphere import view_directions
 
@@ -36,27 +36,31 @@ def test_reference_point_is_the_image_of_the_mesh_origin(
                        [det.similarity.x, det.similarity.y], atol=1e-6)
 
 
-def _detection(score: float, refined: bool, tag: int) -> Detection:
-    """A detection told apart by its model view."""
-    return Detection(score=score, log_probability=0.0, model_view=tag, azimuth_deg=0.0,
-                     polar_deg=0.0, similarity=Similarity2D(0.0, 0.0, 0.0, 1.0),
-                     pose=Pose(np.eye(3), np.array([0.0, 0.0, 500.0])), refined=refined)
+def _fit(score: float, refined: bool, tag: int, chance_corrected: float | None = None
+         ) -> _Fitted:
+    """A fitted location told apart by its model view."""
+    return _Fitted(Detection(score=score, log_probability=0.0, model_view=tag, azimuth_deg=0.0,
+                             polar_deg=0.0, similarity=Similarity2D(0.0, 0.0, 0.0, 1.0),
+                             pose=Pose(np.eye(3), np.array([0.0, 0.0, 500.0])),
+                             refined=refined), chance_corrected)
 
 
-def test_confirmed_fits_rank_first_then_the_view_search_order() -> None:
-    # In the view search's order: an unconfirmed fit whose inlier fraction
-    # beats the first's must not overtake it; confirmed fits go first by score.
+def test_confirmed_fits_rank_first_then_refined_by_chance_then_the_view_search_order() -> None:
+    # In the view search's order: confirmed fits go first by score; other
+    # refined fits by their chance-corrected inlier fraction, not by the
+    # plain one (texture); failed refinements last, in the given order.
     in_evidence_order = [
-        _detection(0.62, False, 0),
-        _detection(0.70, True, 1),   # refined but below GOOD_FIT_FRACTION
-        _detection(0.88, True, 2),
-        _detection(0.95, True, 3),
-        _detection(0.55, False, 4),
+        _fit(0.62, False, 0),
+        _fit(0.70, True, 1, chance_corrected=0.40),  # refined, below GOOD_FIT_FRACTION
+        _fit(0.88, True, 2, chance_corrected=0.85),
+        _fit(0.95, True, 3, chance_corrected=0.93),
+        _fit(0.55, False, 4),
+        _fit(0.66, True, 5, chance_corrected=0.60),  # beats 1 on chance, not on score
     ]
     ranked = _ranked(in_evidence_order)
-    assert [d.model_view for d in ranked] == [3, 2, 0, 1, 4]
+    assert [d.model_view for d in ranked] == [3, 2, 5, 1, 0, 4]
     # Scores never rise down the list; each is its own or the one above's.
     scores = [d.score for d in ranked]
-    assert scores == [0.95, 0.88, 0.62, 0.62, 0.55]
+    assert scores == [0.95, 0.88, 0.66, 0.66, 0.62, 0.55]
     assert sorted(scores, reverse=True) == scores
     assert GOOD_FIT_FRACTION <= 0.88
