@@ -30,6 +30,20 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from viewloc_core.errors import InvalidImageError
+from viewloc_core.feature_kernels import (
+    CLOSED_CIRCLE,
+    NO_ARC,
+    arc_runs,
+    chain_pieces,
+    fit_circles,
+    piece_chunks,
+    pixels_near_circles,
+    prune_circles,
+    refit_on_pixels,
+    scaled_int16,
+    spread_bits,
+    window_bin_counts,
+)
 from viewloc_core.gradient import image_gradient
 
 F32 = NDArray[np.float32]
@@ -267,6 +281,12 @@ def extract_features(
     grey = to_grey_float(image)
     h, w = grey.shape
     smooth = np.asarray(cv2.GaussianBlur(grey, (0, 0), 1.0), np.float32)
+    # LSD needs nothing of what follows (its segments are masked afterwards)
+    # and OpenCV releases the GIL, as do numpy's partition and its loops over
+    # large arrays: it runs on the other core meanwhile, from as early as it
+    # can, so that the other core is free again for the distance transform
+    # below.
+    lines = _POOL.submit(_detect_lines, smooth)
     gx, gy = _gradient(image, smooth)
     mag = cv2.magnitude(gx, gy)
     # A strided sample is plenty for a percentile and four times cheaper.
@@ -280,12 +300,6 @@ def extract_features(
         # saturated background around a small part): the floor sets the
         # scale, so every step of more than the floor is an edge.
         ref = floor_gradient / config.edge_high_frac
-    # LSD wants 8 bit: stretch between robust extremes so dim images keep edges.
-    lo_v, hi_v = np.percentile(smooth[::2, ::2], [1.0, 99.0])
-    grey8 = np.clip((smooth - lo_v) * (255.0 / max(hi_v - lo_v, 1e-6)), 0, 255).astype(np.uint8)
-    # LSD needs nothing of what follows (its segments are masked afterwards)
-    # and OpenCV releases the GIL: it runs on the other core meanwhile.
-    lines = _POOL.submit(_detect_lines, grey8)
 
     # Canny on the gradient normalised by the image's own gradient scale keeps
     # the edge map independent of exposure and bit depth. Canny takes int16:
@@ -299,13 +313,12 @@ def extract_features(
         shrink = 32000.0 / (g_max * norm)
         norm *= shrink
         full_scale *= shrink
-    dx16 = np.clip(gx * norm, -32000, 32000).astype(np.int16)
-    dy16 = np.clip(gy * norm, -32000, 32000).astype(np.int16)
+    dx16, dy16 = scaled_int16(gx, gy, np.float32(norm), np.float32(32000.0))
     floor = floor_gradient * norm
-    edges = cv2.Canny(
+    edges = np.asarray(cv2.Canny(
         dx16, dy16, max(config.edge_low_frac * full_scale, 0.5 * floor),
         max(config.edge_high_frac * full_scale, floor), L2gradient=True,
-    )
+    ), np.uint8)
     if mask is not None:
         keep = cv2.dilate(mask.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
         edges[~keep] = 0
@@ -330,7 +343,8 @@ def extract_features(
         pixel_xy = np.compress(untextured, pixel_xy, axis=0)
         direction = direction[untextured]
     # The edge map is final: its distance transform (OpenCV, without the GIL)
-    # runs on another core while the arc candidates are traced.
+    # runs on another core while the arc candidates are traced and the
+    # segments grouped.
     nearest_job = _POOL.submit(_nearest_edge_maps, edges) if len(pixel_xy) else None
     # Edge tangent is perpendicular to the gradient; modulo π for polarity.
     edge_theta = np.asarray((direction + np.pi / 2.0) % np.pi, np.float32)
@@ -338,10 +352,11 @@ def extract_features(
 
     bits = orientation_bits_map(edge_xy, edge_theta, (h, w), spread_px)
     start_circles = _arc_candidates(edges, config)
+    segments = _segments(lines.result(), config, segment_mask)
+    segment_parts = _group(segments, config)
     nearest, dist = _nearest_edge_result(nearest_job, edges)
     arcs = _arcs_on_edges(start_circles, edge_xy, edge_theta, nearest, dist, config)
-    segments = _segments(lines.result(), config, segment_mask)
-    grouped = _concat_parts([_group(segments, config), arcs])
+    grouped = _concat_parts([segment_parts, arcs])
     return ImageFeatures(edge_xy, edge_theta, segments, grouped, bits, nearest, dist, (h, w))
 
 
@@ -399,37 +414,14 @@ def _texture_flags(shape: tuple[int, int], pixel_index: NDArray[np.int64], direc
     n_bins = 8
     theta = np.mod(direction, np.pi)
     b = np.minimum((theta * (n_bins / np.pi)).astype(np.int64), n_bins - 1)
-    side = 2 * config.texture_radius_px + 1
-    # Edge counts per orientation bin in each window by one integer box
-    # filter, several bins packed into each int32 channel: a count of at
-    # most side² never carries into the next bin's bit field.
-    field = int(side * side).bit_length()
-    per_channel = max(1, 31 // field)
-    n_channels = -(-n_bins // per_channel)
-    # Channel and bit offset of each bin's field, looked up per pixel (numpy's
-    # integer division and shifts by array are slow on tens of thousands).
-    bins = np.arange(n_bins)
-    channel_of = bins // per_channel
-    shift_of = field * (bins % per_channel)
-    field_mask = (1 << field) - 1
-    planes = np.zeros((shape[0] * shape[1], n_channels), np.int32)
-    first_channel = pixel_index * n_channels  # flat index of each pixel's channel 0
-    planes.reshape(-1)[first_channel + channel_of[b]] = (1 << shift_of)[b]
-    window_sums = cv2.boxFilter(planes.reshape(*shape, n_channels), cv2.CV_32S, (side, side),
-                                normalize=False, borderType=cv2.BORDER_REFLECT)
-    packed = np.asarray(window_sums, np.int32).reshape(-1)
-    # All edges in the window: every bit field of every channel.
-    total = np.zeros(len(pixel_index), np.int32)
-    for channel in range(n_channels):
-        at_pixel = packed[first_channel + channel]
-        for k in range(per_channel):
-            total += (at_pixel >> (field * k)) & field_mask
+    radius = config.texture_radius_px
+    counts = window_bin_counts(shape[0], shape[1], pixel_index, b, n_bins, radius)
     # Own orientation and its two neighbours (±22.5°) count as "same".
-    same = np.zeros(len(pixel_index), np.int32)
-    for step in (0, 1, -1):
-        bin_b = np.take((bins + step) % n_bins, b)
-        same += (packed[first_channel + channel_of[bin_b]] >> shift_of[bin_b]) & field_mask
-    return np.asarray((total - same) > config.texture_other_density * side * side)
+    rows = np.arange(len(b))
+    same = counts[rows, b] + counts[rows, (b + 1) % n_bins] + counts[rows, (b - 1) % n_bins]
+    other = counts.sum(axis=1) - same
+    side = 2 * radius + 1
+    return np.asarray(other > config.texture_other_density * side * side)
 
 
 def _quantisation_step(image: NDArray[np.generic]) -> float:
@@ -506,26 +498,11 @@ def orientation_bits_map(
     (H, W) uint16
     """
     h, w = shape
-    bits = np.zeros((h, w), np.uint16)
-    if len(edge_xy) == 0:
-        return bits
-    xs = edge_xy[:, 0].astype(np.int64)
-    ys = edge_xy[:, 1].astype(np.int64)
-    b = orientation_bin(edge_theta)
-    np.bitwise_or.at(bits, (ys, xs), (1 << b).astype(np.uint16))
-    if spread_px <= 0:
-        return bits
-    # OR-spreading by shifted copies (dilation would take a max, not an OR),
-    # along rows, then along columns: the square window in 4r shifts, not 4r².
-    rows = bits.copy()
-    for d in range(1, spread_px + 1):
-        rows[:, d:] |= bits[:, :w - d]
-        rows[:, :w - d] |= bits[:, d:]
-    out = rows.copy()
-    for d in range(1, spread_px + 1):
-        out[d:] |= rows[:h - d]
-        out[:h - d] |= rows[d:]
-    return out
+    bit = (1 << orientation_bin(edge_theta)).astype(np.uint16)
+    # OR-spreading (a dilation would take a max, not an OR) round the edge
+    # pixels only: they are few.
+    return spread_bits(edge_xy[:, 0].astype(np.int64), edge_xy[:, 1].astype(np.int64), bit, h, w,
+                       max(spread_px, 0))
 
 
 def _empty_features(shape: tuple[int, int]) -> ImageFeatures:
@@ -592,8 +569,12 @@ def _nearest_edge_result(job: Future[tuple[NDArray[np.int32], F32]] | None,
     return job.result()
 
 
-def _detect_lines(grey8: NDArray[np.uint8]) -> NDArray[np.float32] | None:
-    """Raw LSD output for an 8-bit image (None when it finds nothing)."""
+def _detect_lines(smooth_grey: F32) -> NDArray[np.float32] | None:
+    """Raw LSD output for a smoothed grey image (None when it finds nothing)."""
+    # LSD wants 8 bit: stretch between robust extremes so dim images keep edges.
+    lo_v, hi_v = np.percentile(smooth_grey[::2, ::2], [1.0, 99.0])
+    stretch = 255.0 / max(hi_v - lo_v, 1e-6)
+    grey8 = np.clip((smooth_grey - lo_v) * stretch, 0, 255).astype(np.uint8)
     lsd = getattr(_LSD_PER_THREAD, "detector", None)
     if lsd is None:
         lsd = cv2.createLineSegmentDetector(cv2.LSD_REFINE_NONE)
@@ -797,6 +778,12 @@ def _parallel_pairs(seg: F32, config: FeatureConfig) -> _Parts:
 
 #: Half window, in contour steps, of the tangent estimate along an edge chain.
 _ARC_STEP = 3
+#: Direction (radians) of each offset ``(dx, dy)`` between the chain points
+#: ``_ARC_STEP`` ahead and behind a point (at most ``2 _ARC_STEP`` pixels each
+#: way), at ``[dy + 2 _ARC_STEP, dx + 2 _ARC_STEP]``: numpy's arctan2, whose
+#: last bit numba's atan2 does not always reproduce.
+_STEP_DIRECTION = np.arctan2(*np.mgrid[-2 * _ARC_STEP:2 * _ARC_STEP + 1,
+                                       -2 * _ARC_STEP:2 * _ARC_STEP + 1].astype(np.float64))
 #: Turning (radians) between the tangents ``_ARC_STEP`` steps before and after a
 #: point that marks it as a corner, a branch or the end of an open chain; a
 #: circle turns that much only below ``7 / 0.85 ≈ 8`` px radius.
@@ -852,44 +839,19 @@ def _arc_candidates(edges: NDArray[np.uint8], config: FeatureConfig) -> F64:
     if not chains:
         return no_circles
     lengths = np.array([len(c) for c in chains], np.int64)
-    starts = np.cumsum(lengths) - lengths
-    pts = np.concatenate(chains).astype(np.float64)
-    start = np.repeat(starts, lengths)
-    length = np.repeat(lengths, lengths)
-    pos = np.arange(len(pts)) - start
-    ahead = _chain_index(start, pos + _ARC_STEP, length)
-    behind = _chain_index(start, pos - _ARC_STEP, length)
-    # Rows of (N, 2) arrays are gathered with np.take and np.compress here
-    # and below: numpy's fancy and boolean indexing of them is several times
-    # slower.
-    d = np.take(pts, ahead, axis=0) - np.take(pts, behind, axis=0)
-    phi = np.arctan2(d[:, 1], d[:, 0])
-    turn = np.abs(_wrap_pi(phi[ahead] - phi[behind]))
-    corner = turn > _ARC_CORNER_TURN
-    # Start each chain at its first corner so that no piece wraps around.
-    first = np.minimum.reduceat(np.where(corner, pos, length), starts)
-    first = np.where(first < lengths, first, 0)
-    order = _chain_index(start, pos + np.repeat(first, lengths), length)
-    pts, corner = np.take(pts, order, axis=0), corner[order]
-    boundary = corner | (pos == 0)
-    keep = ~corner
-    pts, piece = np.compress(keep, pts, axis=0), _drop_small(np.cumsum(boundary)[keep] - 1, 10)
-    pts, piece = np.compress(piece >= 0, pts, axis=0), piece[piece >= 0]
-    if len(pts) == 0:
+    x, y, piece, n_pieces = chain_pieces(np.concatenate(chains), lengths, _ARC_STEP,
+                                         _STEP_DIRECTION, _ARC_CORNER_TURN, 10)
+    if n_pieces == 0:
         return no_circles
 
-    fit = _fit_circles(pts, piece)
+    fit = fit_circles(x, y, piece, n_pieces)
     good = _circle_ok(fit, config, np.radians(30.0), 1.5)
     # Chunks of the pieces no circle fits.
-    rank = np.arange(len(piece)) - np.searchsorted(piece, piece)
-    bad = ~good[piece]
-    chunk = _drop_small(np.unique(piece[bad] * 100000 + rank[bad] // _ARC_CHUNK,
-                                  return_inverse=True)[1], _ARC_CHUNK // 2)
-    cpts = np.compress(chunk >= 0, np.compress(bad, pts, axis=0), axis=0)
-    chunk = chunk[chunk >= 0]
+    chunk_x, chunk_y, chunk, n_chunks = piece_chunks(x, y, piece, ~good, _ARC_CHUNK,
+                                                     _ARC_CHUNK // 2)
     # Chunks are short: ask for more curvature, or a pixel jog in a straight
     # line fits a wide circle.
-    cfit = _fit_circles(cpts, chunk) if len(chunk) else np.zeros((0, 5))
+    cfit = fit_circles(chunk_x, chunk_y, chunk, n_chunks)
     cgood = _circle_ok(cfit, config, np.radians(45.0), 1.5)
     cand = np.concatenate([fit[good], cfit[cgood]])
     if len(cand) == 0:
@@ -902,31 +864,7 @@ def _arc_candidates(edges: NDArray[np.uint8], config: FeatureConfig) -> F64:
     # dilated map) are dropped here.
     cand = _prune_circles(cand[np.argsort(-cand[:, 4], kind="stable")], config, 2.5)
     cand = cand[np.isfinite(cand[:, 2])]
-    return np.asarray(cand[:_ARC_MAX_CANDIDATES, :3], np.float64)
-
-
-def _chain_index(start: NDArray[np.int64], pos: NDArray[np.int64],
-                 length: NDArray[np.int64]) -> NDArray[np.int64]:
-    """Index ``start + pos mod length`` of points along closed chains.
-
-    Parameters
-    ----------
-    start, length : (N,) int64
-        First index and length of the chain of each query (in points).
-    pos : (N,) int64
-        Position along that chain, in ``[-length, 2 length)``.
-
-    Returns
-    -------
-    (N,) int64
-    """
-    # One conditional wrap each way: numpy's integer modulo is several times
-    # slower on the tens of thousands of contour points of a busy image.
-    index = pos.copy()
-    np.subtract(index, length, out=index, where=index >= length)
-    np.add(index, length, out=index, where=index < 0)
-    index += start
-    return index
+    return np.ascontiguousarray(cand[:_ARC_MAX_CANDIDATES, :3])
 
 
 def _arcs_on_edges(circles: F64, edge_xy: F32, edge_theta: F32, nearest: NDArray[np.int32],
@@ -958,47 +896,20 @@ def _arcs_on_edges(circles: F64, edge_xy: F32, edge_theta: F32, nearest: NDArray
     exy = edge_xy.astype(np.float64)
     ex, ey = exy[:, 0].copy(), exy[:, 1].copy()  # contiguous: faster to gather
     eth = edge_theta.astype(np.float64)
-    h, w = nearest.shape
+    max_tangent_error = np.radians(12.0)
     current = circles
     label = np.zeros(0, np.int64)
     use = np.zeros(0, np.int64)
     for band_px, band_frac in ((4.0, 0.08), (2.5, 0.03), (1.5, 0.01)):
-        cx, cy, r = current[:, 0], current[:, 1], current[:, 2]
-        band = band_px + band_frac * r
-        valid = np.isfinite(r) & (r <= config.arc_max_radius_px)
-        steps = np.where(valid, np.ceil(2 * np.pi * np.where(valid, r, 0.0)), 0).astype(np.int64)
-        label = np.repeat(np.arange(len(current)), steps)
-        if len(label) == 0:
-            return _no_parts()
-        k = np.arange(len(label)) - np.repeat(np.cumsum(steps) - steps, steps)
-        ang = 2 * np.pi * k / steps[label]
-        u = np.rint(cx[label] + r[label] * np.cos(ang)).astype(np.int64)
-        v = np.rint(cy[label] + r[label] * np.sin(ang)).astype(np.int64)
-        inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
-        label, u, v = label[inside], u[inside], v[inside]
-        close = edge_distance[v, u] <= band[label] + 1.0
-        label = label[close]
-        pair = label * len(exy) + nearest[v[close], u[close]]
-        # Neighbouring steps often find the same pixel.
-        pair = pair[np.r_[True, pair[1:] != pair[:-1]]]
-        label, use = pair // len(exy), pair % len(exy)
-        dx = ex[use] - cx[label]
-        dy = ey[use] - cy[label]
-        dist = np.hypot(dx, dy)
-        # On the circle and tangent to it (edge tangents are modulo π).
-        dth = np.abs(np.mod(eth[use] - np.arctan2(dy, dx), np.pi) - np.pi / 2)
-        near = (np.abs(dist - r[label]) <= band[label]) & (dth < np.radians(12.0))
-        label, use = label[near], use[near]
+        band = band_px + band_frac * current[:, 2]
+        label, use, dx, dy = pixels_near_circles(current, band, config.arc_max_radius_px,
+                                                 ex, ey, nearest, edge_distance)
         # Circles with too few pixels stay in place as empty sets.
-        present = np.bincount(label, minlength=len(current)) >= 8
-        keep = present[label]
-        label, use = label[keep], use[keep]
+        refit, label, use = refit_on_pixels(current, band, label, use, dx, dy,
+                                            np.arctan2(dy, dx), ex, ey, eth,
+                                            max_tangent_error, 8)
         if len(label) == 0:
             return _no_parts()
-        refit = np.zeros((len(current), 5))
-        refit[:, 2] = np.inf
-        refit[present] = _fit_circles(np.take(exy, use, axis=0),
-                                      np.unique(label, return_inverse=True)[1])
         current = _prune_circles(refit, config)
     # Two starting circles may converge on one circle: keep the best covered.
     return _dedupe_arcs(_arc_parts(np.take(exy, use, axis=0), label, current, exy, config))
@@ -1008,21 +919,7 @@ def _prune_circles(fit: F64, config: FeatureConfig, tol_px: float = 1.5) -> F64:
     """Between refits: drop (radius ∞) circles with too few pixels for the
     shortest arc and all but the best supported of circles that converged
     together (pieces of one circle usually do), to save the next passes."""
-    out = fit.copy()
-    cx, cy, r, n = fit[:, 0], fit[:, 1], fit[:, 2], fit[:, 4]
-    with np.errstate(invalid="ignore"):
-        alive = n >= 0.3 * np.radians(config.arc_min_span_deg) * r
-    out[~alive, 2] = np.inf
-    idx = np.flatnonzero(alive)
-    idx = idx[np.argsort(-n[idx], kind="stable")]
-    same = (np.hypot(cx[idx, None] - cx[None, idx], cy[idx, None] - cy[None, idx]) <= tol_px) & (
-        np.abs(r[idx, None] - r[None, idx]) <= tol_px)
-    dropped = np.zeros(len(idx), bool)
-    for i in range(len(idx)):
-        if not dropped[i]:
-            dropped[i + 1:] |= same[i, i + 1:]
-    out[idx[dropped], 2] = np.inf
-    return out
+    return prune_circles(fit, 0.3 * np.radians(config.arc_min_span_deg), tol_px)
 
 
 def _dedupe_arcs(parts: _Parts) -> _Parts:
@@ -1063,73 +960,20 @@ def _arc_parts(pts: F64, label: NDArray[np.int64], circles: F64, edge_xy: F64,
     # pixels): a circle tangent to the two arms of a corner is covered near
     # both tangent points but not between them, and is no arc.
     n_bins = np.clip(np.rint(np.pi * np.where(fits, r, 0.0)), 12, 360).astype(np.int64)
-    nb = n_bins[label]
     psi = np.mod(np.arctan2(pts[:, 1] - cy[label], pts[:, 0] - cx[label]), 2 * np.pi)
-    bins = np.minimum((psi / (2 * np.pi) * nb).astype(np.int64), nb - 1)
-    key = np.unique(label * 512 + bins)
-    lab, occ = key // 512, key % 512
-    bounds = np.searchsorted(lab, np.arange(len(circles) + 1))
-    circle_l, theta_l, span_l = [], [], []
-    min_span = np.radians(config.arc_min_span_deg)
-    for c in np.flatnonzero(np.diff(bounds) > 0):
-        o = occ[bounds[c]: bounds[c + 1]]
-        n = int(n_bins[c])
-        gap = _cyclic_gaps(o, n)
-        big = np.flatnonzero(gap > max(2, round(0.06 * n)))
-        if len(big) == 0:
-            # Closed (or nearly): the middle of the arc is undefined.
-            if n - gap.max() < _ARC_CLOSED / (2 * np.pi) * n:
-                big = np.array([int(np.argmax(gap))])
-            else:
-                circle_l.append(c)
-                theta_l.append(_closed_circle_orientation(edge_xy, cx[c], cy[c], r[c]))
-                span_l.append(2 * np.pi)
-                continue
-        # Runs start after a big gap and end at the next big gap.
-        first = (big + 1) % len(o)
-        last = np.concatenate((big[1:], big[:1]))  # np.roll(big, -1), cheaper
-        run_bins = np.mod(o[last] - o[first], n) + 1
-        run_count = np.mod(last - first, len(o)) + 1
-        k = int(np.argmax(run_bins))
-        span = 2 * np.pi * run_bins[k] / n
-        if span < min_span or run_count[k] < 0.6 * run_bins[k]:
-            continue
-        circle_l.append(c)
-        theta_l.append((o[first[k]] + (run_bins[k] - 1) / 2 + 0.5) * 2 * np.pi / n)
-        span_l.append(min(span, 2 * np.pi))
-    circle = np.array(circle_l, np.int64)
-    theta = np.array(theta_l, np.float64)
-    span = np.array(span_l, np.float64)
+    status, theta, span = arc_runs(label, psi, n_bins, _ARC_CLOSED / (2 * np.pi),
+                                   np.radians(config.arc_min_span_deg))
+    circle = np.flatnonzero(status != NO_ARC)
+    for c in np.flatnonzero(status == CLOSED_CIRCLE):
+        theta[c] = _closed_circle_orientation(edge_xy, cx[c], cy[c], r[c])
+        span[c] = 2 * np.pi
     return (
         np.full(len(circle), KIND_ARC, np.int8),
         np.stack([cx[circle], cy[circle]], axis=1).astype(np.float32),
-        np.mod(theta, 2 * np.pi).astype(np.float32),
+        np.mod(theta[circle], 2 * np.pi).astype(np.float32),
         r[circle].astype(np.float32),
-        np.stack([span, np.zeros(len(span))], axis=1).astype(np.float32),
+        np.stack([span[circle], np.zeros(len(circle))], axis=1).astype(np.float32),
     )
-
-
-def _cyclic_gaps(occupied: NDArray[np.int64], n_bins: int) -> NDArray[np.int64]:
-    """Empty bins after each occupied bin up to the next one, round the circle.
-
-    Parameters
-    ----------
-    occupied : (M,) int64
-        Occupied bins in increasing order, in ``0..n_bins-1``, M >= 1.
-    n_bins : int
-        Bins round the circle.
-
-    Returns
-    -------
-    (M,) int64
-        ``np.diff(np.append(occupied, occupied[0] + n_bins)) - 1``, without
-        np.append and np.diff: their overhead counts once per circle.
-    """
-    gaps = np.empty_like(occupied)
-    np.subtract(occupied[1:], occupied[:-1], out=gaps[:-1])
-    gaps[-1] = occupied[0] + n_bins - occupied[-1]
-    gaps -= 1
-    return gaps
 
 
 def _closed_circle_orientation(edge_xy: F64, cx: float, cy: float, r: float) -> float:
@@ -1149,52 +993,6 @@ def _closed_circle_orientation(edge_xy: F64, cx: float, cy: float, r: float) -> 
     return 1.5 * np.pi
 
 
-def _fit_circles(pts: F64, label: NDArray[np.int64]) -> F64:
-    """Algebraic (Kåsa) circle fit to every labelled point set at once.
-
-    Parameters
-    ----------
-    pts : (N, 2) float64
-        Points, pixels.
-    label : (N,) int64
-        Set of each point, 0..L-1 (every label present).
-
-    Returns
-    -------
-    (L, 5) float64
-        ``cx, cy, r, rms, n`` per set: centre and radius (pixels), RMS
-        geometric distance of the points from the circle, point count. Sets
-        on a line get an infinite radius.
-    """
-    n_sets = int(label.max()) + 1
-    n = np.bincount(label, minlength=n_sets).astype(np.float64)
-    x, y = pts[:, 0].copy(), pts[:, 1].copy()  # contiguous: read several times
-    mx = np.bincount(label, x, n_sets) / n
-    my = np.bincount(label, y, n_sets) / n
-    u = x - mx[label]
-    v = y - my[label]
-    z = u * u + v * v
-    # Centred coordinates make the normal equations block diagonal:
-    # u² + v² = A u + B v + C with C = mean(z) and a 2x2 system for (A, B).
-    suu = np.bincount(label, u * u, n_sets)
-    suv = np.bincount(label, u * v, n_sets)
-    svv = np.bincount(label, v * v, n_sets)
-    suz = np.bincount(label, u * z, n_sets)
-    svz = np.bincount(label, v * z, n_sets)
-    c = np.bincount(label, z, n_sets) / n
-    det = suu * svv - suv * suv
-    flat = det <= 1e-9 * (suu + svv) ** 2
-    det = np.where(flat, 1.0, det)
-    a = (svv * suz - suv * svz) / det
-    b = (suu * svz - suv * suz) / det
-    cu, cv = a / 2, b / 2
-    r = np.sqrt(np.maximum(c + cu * cu + cv * cv, 0.0))
-    resid = np.hypot(u - cu[label], v - cv[label]) - r[label]
-    rms = np.sqrt(np.bincount(label, resid * resid, n_sets) / n)
-    r = np.where(flat, np.inf, r)
-    return np.stack([mx + cu, my + cv, r, rms, n], axis=1)
-
-
 def _circle_ok(fit: F64, config: FeatureConfig, min_span: float,
                rms_slack: float) -> NDArray[np.bool_]:
     """Fits within the radius range and ``rms_slack`` times the RMS bound whose
@@ -1208,18 +1006,3 @@ def _circle_ok(fit: F64, config: FeatureConfig, min_span: float,
             & (rms <= rms_slack * np.maximum(config.arc_max_rms_px, config.arc_max_rms_frac * r))
             & (span >= min_span)
         )
-
-
-def _drop_small(label: NDArray[np.int64], min_count: int) -> NDArray[np.int64]:
-    """Relabel 0..L'-1 the sets with at least ``min_count`` points; others -1."""
-    if len(label) == 0:
-        return label
-    counts = np.bincount(label)
-    big = counts >= min_count
-    new = np.where(big, np.cumsum(big) - 1, -1)
-    return np.asarray(new[label], np.int64)
-
-
-def _wrap_pi(angle: F64) -> F64:
-    """Angle wrapped to [-π, π)."""
-    return np.asarray(np.mod(angle + np.pi, 2 * np.pi) - np.pi, np.float64)

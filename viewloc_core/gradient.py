@@ -11,6 +11,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from viewloc_core.feature_kernels import strongest_channel
+
 F32 = NDArray[np.float32]
 
 
@@ -35,18 +37,10 @@ def image_gradient(img: F32) -> tuple[F32, F32]:
         Intensity units per pixel; for colour, per pixel those of the channel
         with the largest gradient magnitude (the first one on ties).
     """
-    if img.ndim == 2:
-        return _sobel(img)
-    # Whole-plane OpenCV operations: numpy's argmax over a trailing axis of 3
-    # and take_along_axis cost about 5 ms at 384x288.
-    channels = [np.asarray(c, dtype=np.float32) for c in cv2.split(img)]
-    gx, gy = _sobel(channels[0])
-    best_mag = cv2.add(cv2.multiply(gx, gx), cv2.multiply(gy, gy))
-    for channel in channels[1:]:
-        cx, cy = _sobel(channel)
-        mag = cv2.add(cv2.multiply(cx, cx), cv2.multiply(cy, cy))
-        stronger = cv2.compare(mag, best_mag, cv2.CMP_GT)
-        cv2.copyTo(cx, stronger, gx)
-        cv2.copyTo(cy, stronger, gy)
-        cv2.max(best_mag, mag, best_mag)
-    return gx, gy
+    if img.ndim == 2 or img.shape[2] == 1:
+        return _sobel(img.reshape(img.shape[:2]))
+    # One Sobel pass over all channels, and the per-pixel choice in one
+    # compiled loop: per-channel planes, OpenCV's multiply/add/compare and
+    # numpy's argmax over a trailing axis of 3 all cost several times more.
+    gx_channels, gy_channels = _sobel(img)
+    return strongest_channel(gx_channels, gy_channels)

@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from viewloc_core import normal_search, sample_evidence, seeding, similarity_fit
+from viewloc_core import feature_kernels, normal_search, sample_evidence, seeding, similarity_fit
 from viewloc_core import similarity as sim2
 from viewloc_core.align import (
     AlignConfig,
@@ -127,6 +127,7 @@ _INDEX_CACHE: weakref.WeakKeyDictionary[ObjectModel, ModelIndex] = weakref.WeakK
 def warm_up() -> None:
     """Compile the pipeline's numba kernels now (a service calls this at
     start-up, so that no request waits for the compiler)."""
+    feature_kernels.warm_up()
     similarity_fit.warm_up()
     seeding.warm_up()
     sample_evidence.warm_up()
