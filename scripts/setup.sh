@@ -61,6 +61,14 @@ if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ] || [ scripts/setup.sh -n
   # pyrender pins PyOpenGL 3.1.0, which cannot open an EGL context headless;
   # 3.1.10 can, and pyrender works with it.
   .venv/bin/python -m pip install -q --no-deps "PyOpenGL==3.1.10"
+  if [ "$RUNTIME" = "0" ]; then
+    # numba compiles the pipeline's kernels at the service's start-up (about
+    # 35 s on 2 cores with an empty cache) and caches them next to the code:
+    # compiled once here, `make run` and the tests' servers start at once.
+    # (The image compiles them in its own stage, for its own user.)
+    echo "setup: compiling the numba kernels"
+    .venv/bin/python -c "from viewloc_core.localize import warm_up; warm_up()"
+  fi
   touch "$stamp"
 fi
 echo "setup: ok"

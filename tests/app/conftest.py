@@ -52,7 +52,9 @@ def start_server(settings: Settings, tasks: dict[str, str] | None = None) -> Liv
     server = uvicorn.Server(config)
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()
-    deadline = time.monotonic() + 20
+    # Start-up compiles the numba kernels when their cache is stale (after
+    # an edit of a kernel module: about 35 s on 2 cores).
+    deadline = time.monotonic() + 120
     while not server.started:
         if time.monotonic() > deadline or not thread.is_alive():
             raise RuntimeError("uvicorn did not start")
