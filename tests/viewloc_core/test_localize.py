@@ -6,7 +6,15 @@ import pytest
 from tests.viewloc_core.conftest import render_scene
 from viewloc_core.camera import Camera
 from viewloc_core.detection import Detection, Similarity2D
-from viewloc_core.localize import GOOD_FIT_FRACTION, LocalizeOptions, _Fitted, _ranked, localize
+from viewloc_core.localize import (
+    GOOD_FIT_FRACTION,
+    SPARE_MIN_CHANCE_CORRECTED,
+    LocalizeOptions,
+    _convincing,
+    _Fitted,
+    _ranked,
+    localize,
+)
 from viewloc_core.pose import Pose
 from viewloc_core.view_sphere import view_directions
 
@@ -64,3 +72,11 @@ def test_confirmed_fits_rank_first_then_refined_by_chance_then_the_view_search_o
     assert scores == [0.95, 0.88, 0.66, 0.66, 0.62, 0.55]
     assert sorted(scores, reverse=True) == scores
     assert GOOD_FIT_FRACTION <= 0.88
+
+
+def test_a_spare_location_competes_only_with_a_convincing_refinement() -> None:
+    # A high plain inlier fraction is not enough (texture), nor is a fit
+    # whose refinement failed; the chance-corrected fraction decides.
+    assert not _convincing(_fit(0.95, False, 0))
+    assert not _convincing(_fit(0.90, True, 1, chance_corrected=SPARE_MIN_CHANCE_CORRECTED - 0.01))
+    assert _convincing(_fit(0.75, True, 2, chance_corrected=SPARE_MIN_CHANCE_CORRECTED))
