@@ -124,9 +124,11 @@ class Match2D:
         coarse subset: how the match was ranked.
     alternatives : tuple of Match2D
         Other model views that fit about the same image location, best
-        first (their ``alternatives`` are empty). A 2D similarity cannot
-        tell some views apart (a barbell's plate seen end-on or a plate of
-        a side view), the 6D verification can.
+        first, with their quick fit and evidence (their ``log_probability``,
+        ``coverage`` and ``n_pairs`` are not measured, 0; their
+        ``alternatives`` are empty). A 2D similarity cannot tell some views
+        apart (a barbell's plate seen end-on or a plate of a side view), the
+        6D verification can.
     """
 
     model_view: int
@@ -693,7 +695,7 @@ def align(
 def _with_quality(model: ObjectModel, index: ModelIndex, feats: ImageFeatures,
                   matches: list[Match2D], config: AlignConfig) -> list[Match2D]:
     """The matches extended on all their view's edge samples, with g and
-    coverage; their alternatives keep their quick fit and get g and coverage."""
+    coverage (their alternatives keep their quick fit and evidence only)."""
     if not matches:
         return []
     views = np.array([m.model_view for m in matches], np.int64)
@@ -703,24 +705,8 @@ def _with_quality(model: ObjectModel, index: ModelIndex, feats: ImageFeatures,
                          robust=True)
     cov = coverage_many(feats, fitted, fine_pts, fine_bins, fine_valid)
     g, n_pairs = log_probability_many([model.model_views[v] for v in views], feats, fitted)
-    alts = [a for m in matches for a in m.alternatives]
-    alt_views = np.array([a.model_view for a in alts], np.int64)
-    alt_sims = np.reshape([a.sim for a in alts], (-1, 4))
-    alt_cov = coverage_many(feats, alt_sims, index.coarse_pts[alt_views],
-                            index.coarse_bins[alt_views], index.coarse_valid[alt_views])
-    alt_g, alt_pairs = log_probability_many([model.model_views[v] for v in alt_views], feats,
-                                            alt_sims)
-    out = []
-    n_alt = 0
-    for i, m in enumerate(matches):
-        with_quality = tuple(
-            replace(a, log_probability=float(alt_g[n]), coverage=float(alt_cov[n]),
-                    n_pairs=int(alt_pairs[n]))
-            for n, a in enumerate(m.alternatives, start=n_alt))
-        n_alt += len(m.alternatives)
-        out.append(replace(m, sim=fitted[i], log_probability=float(g[i]), coverage=float(cov[i]),
-                           n_pairs=int(n_pairs[i]), alternatives=with_quality))
-    return out
+    return [replace(m, sim=fitted[i], log_probability=float(g[i]), coverage=float(cov[i]),
+                    n_pairs=int(n_pairs[i])) for i, m in enumerate(matches)]
 
 
 #: Hypotheses of one model view at one location differing in in-plane angle
