@@ -331,12 +331,13 @@ def extract_features(
     direction = np.arctan2(gy.ravel()[pixel_index], gx.ravel()[pixel_index])
     if config.texture_other_density < 1.0:
         texture = _texture_flags((h, w), pixel_index, direction, config)
-        edges.ravel()[pixel_index[texture]] = 0
+        texture_index = pixel_index[texture]
+        edges.ravel()[texture_index] = 0
         # LSD works on the grey image, not on the edge map: its segments in
         # textured areas (where hardly a pixel is 2 px from a texture edge)
         # go too.
         not_texture = np.ones((h, w), np.uint8)
-        not_texture.ravel()[pixel_index[texture]] = 0
+        not_texture.ravel()[texture_index] = 0
         away = cv2.erode(not_texture, np.ones((5, 5), np.uint8)) > 0
         segment_mask = away if mask is None else (mask & away)
         untextured = ~texture
@@ -808,17 +809,9 @@ def _arc_candidates(edges: NDArray[np.uint8], config: FeatureConfig) -> F64:
     steep curves, is traced into closed pixel chains (``cv2.findContours``
     runs along both sides of an open curve and turns back at its ends). The
     chains are cut at corners (large turning of the tangent) and circles
-    fitted to the pieces by linear least squares. Each candidate circle is
-    then refitted on the original edge pixels near it whose tangent agrees,
-    which gathers the whole circle (both sides of a chain, pieces split by
-    occlusion or branches), and kept when those pixels fit it well and cover
-    a long enough run of it; duplicates of one circle are dropped.
-
-    Position, orientation and size are covariant under a 2D similarity:
-    ``xy`` the centre, ``theta`` the direction from the centre to the middle
-    of the arc, ``scale`` the radius; the attribute (the angular span) is
-    invariant. Everything comes from edge geometry, so neither brightness nor
-    the sign of the contrast enters.
+    fitted to the pieces by linear least squares; pieces no circle fits are
+    cut into chunks and fitted again. The circles that fit well enough, less
+    near-copies, are the candidates.
 
     Parameters
     ----------
@@ -864,6 +857,9 @@ def _arc_candidates(edges: NDArray[np.uint8], config: FeatureConfig) -> F64:
     # dilated map) are dropped here.
     cand = _prune_circles(cand[np.argsort(-cand[:, 4], kind="stable")], config, 2.5)
     cand = cand[np.isfinite(cand[:, 2])]
+    # A contiguous copy: the refit kernels are compiled (and warmed up) for
+    # C-ordered arrays; a column slice would compile another version at the
+    # first request.
     return np.ascontiguousarray(cand[:_ARC_MAX_CANDIDATES, :3])
 
 
@@ -875,7 +871,16 @@ def _arcs_on_edges(circles: F64, edge_xy: F32, edge_theta: F32, nearest: NDArray
     and looking up the nearest edge pixel of each step (cost proportional to
     the perimeter, not to the number of edges); those close to the circle and
     tangent to it are kept and the circle refitted, three times with a
-    narrowing band.
+    narrowing band. This gathers the whole circle (both sides of a chain,
+    pieces split by occlusion or branches); a circle is kept when its pixels
+    fit it well and cover a long enough run of it, and duplicates of one
+    circle are dropped.
+
+    Position, orientation and size are covariant under a 2D similarity:
+    ``xy`` the centre, ``theta`` the direction from the centre to the middle
+    of the arc, ``scale`` the radius; the attribute (the angular span) is
+    invariant. Everything comes from edge geometry, so neither brightness nor
+    the sign of the contrast enters.
 
     Parameters
     ----------
