@@ -1,0 +1,229 @@
+"""Shading agreement: does the part's surface explain the intensities inside its outline?
+
+A smooth part's outline says little about which side of it faces the camera:
+an egg-shaped part seen from the front and from the back has the same
+outline, mirrored, and an outline that is nearly mirror-symmetric fits both
+ways (hard bench set, free-form part: the contour refinement confirmed whole
+outlines of poses 90-180° wrong). The intensities inside the outline tell
+them apart. Under distant lighting, the irradiance of a convex Lambertian
+surface is a smooth function of its normal that the first nine spherical
+harmonics of the normal capture to within a few % whatever the lights
+(Basri and Jacobs, "Lambertian reflectance and linear subspaces", PAMI
+2003; Ramamoorthi and Hanrahan 2001). So for a pose hypothesis: place
+surface samples of the mesh, keep those the camera sees, read the image
+under them, and fit intensity = SH(normal) · c by robust least squares. The
+share of the intensity variance the fit explains (R²) is high where the
+hypothesis's normals are the part's and low where they are not; it needs no
+model of the lights, and an affine change of brightness leaves it unchanged.
+
+Flat-faced parts shade as a few constant patches, which wrong poses explain
+about as well; the agreement is then uninformative, not misleading. Texture
+and specular highlights lower it for every hypothesis alike (the fit is
+robust, so a highlight costs little).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import trimesh
+from numpy.typing import NDArray
+
+from viewloc_core.camera import Camera
+from viewloc_core.pose import Pose
+
+F64 = NDArray[np.float64]
+
+#: Mesh normals across edges sharper than this are not averaged (a crease
+#: shades as two faces, a tessellated curve as one smooth surface).
+CREASE_DEG = 30.0
+
+#: Samples seen at a grazing angle (cosine between normal and viewing ray
+#: below this) are dropped: at the outline the image blurs part and
+#: background together, and a pose error of a pixel moves them off the part.
+MIN_FACING_COS = 0.3
+
+#: Fewest visible samples for a fit of the 9 coefficients.
+MIN_VISIBLE = 40
+
+#: Tukey's biweight constant (in robust standard deviations) of the fit.
+_TUKEY_C = 4.685
+
+#: Reweighting passes of the robust fit.
+_IRLS_PASSES = 4
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class SurfaceSamples:
+    """Points spread evenly over a part's surface, with their normals.
+
+    Attributes
+    ----------
+    points_mm : (N, 3) float64
+        Object frame, mm.
+    normals : (N, 3) float64
+        Unit outward normals, object frame (smooth across edges flatter than
+        :data:`CREASE_DEG`).
+    spacing_mm : float
+        Typical distance between neighbouring samples, mm.
+    extent_mm : float
+        Longest side of the samples' bounding box, mm.
+    """
+
+    points_mm: F64
+    normals: F64
+    spacing_mm: float
+    extent_mm: float
+
+
+def surface_samples(vertices_mm: NDArray[np.floating], faces: NDArray[np.integer],
+                    count: int = 2000, seed: int = 0) -> SurfaceSamples:
+    """Spread ``count`` samples over a triangle mesh's surface, area-weighted.
+
+    Parameters
+    ----------
+    vertices_mm : (V, 3) array
+        Mesh vertices in the frame poses refer to, mm.
+    faces : (F, 3) int array
+    count : int
+        Number of samples.
+    seed : int
+        Sampling is deterministic for a given seed.
+
+    Returns
+    -------
+    SurfaceSamples
+    """
+    mesh = trimesh.Trimesh(np.asarray(vertices_mm, np.float64), np.asarray(faces, np.int64),
+                           process=False)
+    smooth = trimesh.graph.smooth_shade(mesh, angle=math.radians(CREASE_DEG))
+    points, face_index = trimesh.sample.sample_surface(smooth, count, seed=seed)
+    corners = smooth.triangles[face_index]
+    bary = trimesh.triangles.points_to_barycentric(corners, points)
+    normals = np.einsum("nk,nkj->nj", bary, smooth.vertex_normals[smooth.faces[face_index]])
+    length = np.linalg.norm(normals, axis=1, keepdims=True)
+    # Interpolated normals of a sliver can cancel; fall back to the face's own.
+    flat = length[:, 0] < 1e-6
+    normals = np.where(flat[:, None], smooth.face_normals[face_index], normals
+                       / np.maximum(length, 1e-12))
+    area = float(mesh.area)
+    return SurfaceSamples(
+        points_mm=np.asarray(points, np.float64),
+        normals=np.asarray(normals, np.float64),
+        spacing_mm=math.sqrt(area / max(count, 1)),
+        extent_mm=float(np.ptp(points, axis=0).max()) if count else 0.0,
+    )
+
+
+def shading_image(image: NDArray[np.generic]) -> NDArray[np.float32]:
+    """The intensity image the agreement reads: grey, float, lightly smoothed.
+
+    Parameters
+    ----------
+    image : (H, W) or (H, W, 3|4) array, uint8, uint16 or float (RGB when colour)
+
+    Returns
+    -------
+    (H, W) float32
+        Brightness in the input's own unit (the agreement is invariant to its
+        scale and offset); a Gaussian of 1 px takes the edge off pixel noise.
+    """
+    arr = np.asarray(image)
+    if arr.ndim == 3:
+        arr = arr[:, :, :3]  # an alpha channel is not brightness
+    img = np.nan_to_num(arr.astype(np.float32))
+    grey = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY) if img.ndim == 3 else img
+    return np.asarray(cv2.GaussianBlur(grey, (0, 0), 1.0), np.float32)
+
+
+def _visible(samples: SurfaceSamples, camera: Camera, pose: Pose) -> tuple[F64, F64]:
+    """Image positions (M, 2) and camera-frame normals (M, 3) of the samples
+    the camera sees at ``pose``, facing it and in front of anything else."""
+    pts_cam = samples.points_mm @ pose.R_m2c.T + pose.t_m2c
+    normals_cam = samples.normals @ pose.R_m2c.T
+    in_front = pts_cam[:, 2] > 1e-6
+    ray = pts_cam / np.maximum(np.linalg.norm(pts_cam, axis=1, keepdims=True), 1e-12)
+    facing = -np.sum(normals_cam * ray, axis=1) > MIN_FACING_COS
+    idx = np.flatnonzero(in_front & facing)
+    if len(idx) == 0:
+        return np.zeros((0, 2)), np.zeros((0, 3))
+    uv = camera.project(pts_cam[idx])
+    inside = ((uv[:, 0] >= 0) & (uv[:, 0] <= camera.width - 1)
+              & (uv[:, 1] >= 0) & (uv[:, 1] <= camera.height - 1))
+    idx, uv = idx[inside], uv[inside]
+    if len(idx) == 0:
+        return uv, np.zeros((0, 3))
+    # Facing the camera is not enough on a concave part: of the samples that
+    # land in one cell of a coarse depth buffer, only those near the nearest
+    # are seen. A cell is about three samples wide at the part's distance,
+    # so that few cells of a nearer surface are left without a sample of it
+    # (the samples are random, not a grid).
+    z = pts_cam[idx, 2]
+    cell_px = max(1.0, 3.0 * samples.spacing_mm * camera.fx / float(np.median(z)))
+    cells = (np.floor(uv[:, 1] / cell_px) * (camera.width / cell_px + 1)
+             + np.floor(uv[:, 0] / cell_px))
+    order = np.lexsort((z, cells))
+    sorted_cells = cells[order]
+    starts = np.flatnonzero(np.r_[True, sorted_cells[1:] != sorted_cells[:-1]])
+    nearest = np.repeat(z[order][starts], np.diff(np.r_[starts, len(order)]))
+    seen = order[z[order] <= nearest + 2.0 * samples.spacing_mm]
+    return uv[seen], normals_cam[idx[seen]]
+
+
+def _harmonics(normals: F64) -> F64:
+    """The first nine real spherical harmonics (unnormalised) of unit normals, (M, 9)."""
+    x, y, z = normals[:, 0], normals[:, 1], normals[:, 2]
+    return np.stack([np.ones_like(x), x, y, z, x * y, x * z, y * z, x * x - y * y,
+                     3.0 * z * z - 1.0], axis=1)
+
+
+def shading_agreement(grey: NDArray[np.float32], camera: Camera, pose: Pose,
+                      samples: SurfaceSamples) -> float | None:
+    """How well the surface at ``pose`` explains the image's intensities.
+
+    Parameters
+    ----------
+    grey : (H, W) float32
+        :func:`shading_image` of the scene.
+    camera : Camera
+        Scene camera (its size matches ``grey``).
+    pose : Pose
+        Object -> camera, the frame of ``samples``.
+    samples : SurfaceSamples
+
+    Returns
+    -------
+    float in [0, 1] or None
+        Share of the intensity variance of the visible samples that a
+        robust fit on their normals' spherical harmonics explains; None when
+        fewer than :data:`MIN_VISIBLE` samples are seen or the part looks
+        uniform (nothing to explain).
+    """
+    uv, normals = _visible(samples, camera, pose)
+    if len(uv) < MIN_VISIBLE:
+        return None
+    uv32 = uv.astype(np.float32)
+    intensity = cv2.remap(grey, uv32[:, 0][None], uv32[:, 1][None],
+                          cv2.INTER_LINEAR)[0].astype(np.float64)
+    basis = _harmonics(normals)
+    weights = np.ones(len(intensity))
+    residual = intensity - intensity.mean()
+    for _ in range(_IRLS_PASSES):
+        root = np.sqrt(weights)
+        coef, *_ = np.linalg.lstsq(basis * root[:, None], intensity * root, rcond=None)
+        residual = intensity - basis @ coef
+        sigma = 1.4826 * float(np.median(np.abs(residual)))
+        if sigma <= 0.0:
+            break
+        weights = np.clip(1.0 - (residual / (_TUKEY_C * sigma)) ** 2, 0.0, None) ** 2
+    total_weight = float(weights.sum())
+    if total_weight <= 0.0:
+        return None
+    mean = float(weights @ intensity) / total_weight
+    spread = float(weights @ (intensity - mean) ** 2)
+    if spread <= 1e-9 * total_weight * max(1.0, mean * mean):
+        return None
+    return float(np.clip(1.0 - float(weights @ residual**2) / spread, 0.0, 1.0))
