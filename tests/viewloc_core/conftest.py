@@ -35,6 +35,19 @@ def ribbed_bracket() -> trimesh.Trimesh:
     return trimesh.util.concatenate([base, wall, rib])
 
 
+def blob() -> trimesh.Trimesh:
+    """A smooth egg-like part with bumps and a dent: no symmetry, outline
+    nearly mirror-symmetric (its two sides look alike in outline), mm."""
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=1.0)
+    d = np.asarray(sphere.vertices)
+    r = np.ones(len(d))
+    for direction, amp, width in (((1.0, 0.2, 0.3), 0.45, 0.35), ((-0.3, 1.0, 0.5), 0.3, 0.25),
+                                  ((0.2, -0.6, 1.0), -0.25, 0.3)):
+        a = np.asarray(direction) / np.linalg.norm(direction)
+        r += amp * np.exp(-np.sum((d - a) ** 2, axis=1) / width)
+    return trimesh.Trimesh(d * r[:, None] * 40.0 * np.array([1.35, 1.0, 0.8]), sphere.faces)
+
+
 @pytest.fixture(scope="session")
 def bracket_mesh() -> trimesh.Trimesh:
     return l_bracket()

@@ -9,6 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
+from tests.viewloc_core.conftest import blob
 from viewloc_core.camera import Camera
 from viewloc_core.pose import Pose
 from viewloc_core.render import Light, Renderer, prepare
@@ -21,19 +22,6 @@ from viewloc_core.shading import (
 )
 
 CAM = Camera(600.0, 600.0, 319.5, 239.5, 640, 480)
-
-
-def blob() -> trimesh.Trimesh:
-    """A smooth egg-like part with bumps and a dent: no symmetry, outline
-    nearly mirror-symmetric (its two sides look alike in outline), mm."""
-    sphere = trimesh.creation.icosphere(subdivisions=4, radius=1.0)
-    d = np.asarray(sphere.vertices)
-    r = np.ones(len(d))
-    for direction, amp, width in (((1.0, 0.2, 0.3), 0.45, 0.35), ((-0.3, 1.0, 0.5), 0.3, 0.25),
-                                  ((0.2, -0.6, 1.0), -0.25, 0.3)):
-        a = np.asarray(direction) / np.linalg.norm(direction)
-        r += amp * np.exp(-np.sum((d - a) ** 2, axis=1) / width)
-    return trimesh.Trimesh(d * r[:, None] * 40.0 * np.array([1.35, 1.0, 0.8]), sphere.faces)
 
 
 LIGHTS = [
