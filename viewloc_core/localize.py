@@ -50,10 +50,9 @@ from viewloc_core.refine import (
 from viewloc_core.shading import (
     SurfaceSamples,
     shading_agreement,
-    shading_image,
     surface_samples,
 )
-from viewloc_core.symmetry import canonical_pose, min_rotation_error_deg
+from viewloc_core.symmetry import canonical_pose, within_angle_deg
 from viewloc_core.view_search import (
     ViewCandidate,
     best_member,
@@ -111,6 +110,12 @@ VIEW_CANDIDATES = 6
 #: refined, right 6D pose picked: 40 by the first candidate, 48 by the
 #: contour alone, 51-52 with a weight of 0.1, 49-50 with 0.2 to 1).
 SHADING_WEIGHT = 0.1
+
+#: Candidates of a location with less evidence than this share of the best
+#: one's (view search log-likelihood ratio) do not compete with its fit
+#: (hard bench set: the right view, where it was a runner-up, had 0.79 to
+#: 0.97 of the best one's evidence; the bar keeps the cost to close calls).
+OTHER_VIEW_EVIDENCE_SHARE = 0.75
 
 #: Candidates whose start is within this rotation (deg, over the part's
 #: symmetries) of the fit already made are not fitted again.
@@ -272,17 +277,23 @@ def _fit_rank(result: RefinementResult) -> float:
 
 @dataclass(frozen=True, slots=True, eq=False)
 class _Shading:
-    """The scene's intensities and the part's surface (:mod:`viewloc_core.shading`)."""
+    """The scene and the part's surface (:mod:`viewloc_core.shading`)."""
 
-    grey: NDArray[np.float32]
+    image: NDArray[np.generic]
     samples: SurfaceSamples
 
     def rank(self, camera: Camera, result: RefinementResult) -> float:
         """Ranking key of fits of different views at one location: the share
         of the contour confirmed, plus the shading agreement weighted by
         :data:`SHADING_WEIGHT` (0 when the part shows too little of itself)."""
-        agreement = shading_agreement(self.grey, camera, result.pose, self.samples)
+        agreement = shading_agreement(self.image, camera, result.pose, self.samples)
         return _fit_rank(result) + SHADING_WEIGHT * (agreement or 0.0)
+
+
+def _same_view(R_a: NDArray[np.float64], R_b: NDArray[np.float64], model: ObjectModel) -> bool:
+    """Whether two rotations are within ``DISTINCT_VIEW_DEG`` of each other,
+    over the part's symmetries."""
+    return within_angle_deg(R_a, R_b, model.symmetry_group(), DISTINCT_VIEW_DEG)
 
 
 def _other_sides(
@@ -296,26 +307,30 @@ def _other_sides(
     An outline can fit equally well from views far apart: a smooth part's
     front and back, or any two views whose outlines are alike (hard bench
     set, free-form part: whole outlines confirmed at poses 90-180° wrong).
-    Each candidate whose start is at least ``DISTINCT_VIEW_DEG`` from the
-    fit and from the starts already tried gets a short coarse fit; the best
-    by :meth:`_Shading.rank` gets the full fit, which replaces ``result``
-    when it ranks higher.
+    Each candidate with at least ``OTHER_VIEW_EVIDENCE_SHARE`` of the best
+    one's evidence, whose start is at least ``DISTINCT_VIEW_DEG`` from the
+    fit and from the starts already tried, gets a short coarse fit; the
+    best by :meth:`_Shading.rank` gets the full fit, which replaces
+    ``result`` when it ranks higher.
     """
-    sym = model.symmetry_group()
-    current = shading.rank(camera, result)
     tried = [result.pose.R_m2c]
     best: tuple[float, int, Similarity2D, Pose, Pose] | None = None
     for cand in loc.candidates[1:]:
+        if cand.log_likelihood_ratio < OTHER_VIEW_EVIDENCE_SHARE * loc.evidence:
+            break  # best first
         sim_c = _to_full_resolution(cand.sim, factor)
         pose_c = _pose_centred(model, cand.view, sim_c, camera)
-        if any(min_rotation_error_deg(pose_c.R_m2c, R, sym) < DISTINCT_VIEW_DEG for R in tried):
+        if any(_same_view(pose_c.R_m2c, R, model) for R in tried):
             continue
         tried.append(pose_c.R_m2c)
         quick = refine_pose(edges, camera, pose_c, contour, QUICK_REFINE)
         rank = shading.rank(camera, quick)
         if best is None or rank > best[0]:
             best = (rank, cand.view, sim_c, pose_c, quick.pose)
-    if best is not None and best[0] > current:
+    if best is None:
+        return result, t_view, similarity, start
+    current = shading.rank(camera, result)
+    if best[0] > current:
         other = refine_pose(edges, camera, best[4], contour, FINAL_REFINE)
         if shading.rank(camera, other) > current:
             return other, best[1], best[2], best[3]
@@ -563,7 +578,7 @@ def localize(
     # fits need no spare, which keeps the cost to the doubtful images;
     # without refinement nothing would overrule the view search's order.
     samples = _surface_samples(model) if edges is not None else None
-    shading = None if samples is None else _Shading(shading_image(arr), samples)
+    shading = None if samples is None else _Shading(arr, samples)
     fits = [_final_detection(model, loc, level, factor, camera, edges, contour,
                              index.view_radius_px, shading)
             for loc in located[: options.max_detections]]

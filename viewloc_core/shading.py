@@ -118,25 +118,33 @@ def surface_samples(vertices_mm: NDArray[np.floating], faces: NDArray[np.integer
     )
 
 
-def shading_image(image: NDArray[np.generic]) -> NDArray[np.float32]:
-    """The intensity image the agreement reads: grey, float, lightly smoothed.
+def intensity_at(image: NDArray[np.generic], uv: NDArray[np.floating]) -> F64:
+    """Brightness of the image at sub-pixel positions (bilinear), (M,) float64.
 
     Parameters
     ----------
     image : (H, W) or (H, W, 3|4) array, uint8, uint16 or float (RGB when colour)
+        Read where the samples fall only: converting a whole 640x480 image
+        to grey takes longer than all the fits of one location.
+    uv : (M, 2) array
+        Pixel positions inside the image.
 
     Returns
     -------
-    (H, W) float32
-        Brightness in the input's own unit (the agreement is invariant to its
-        scale and offset); a Gaussian of 1 px takes the edge off pixel noise.
+    (M,) float64
+        Luminance (Rec. 601 weights) of colour images, the value of grey ones,
+        in the input's own unit (the agreement is invariant to its scale and
+        offset); an alpha channel is ignored.
     """
     arr = np.asarray(image)
-    if arr.ndim == 3:
-        arr = arr[:, :, :3]  # an alpha channel is not brightness
-    img = np.nan_to_num(arr.astype(np.float32))
-    grey = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY) if img.ndim == 3 else img
-    return np.asarray(cv2.GaussianBlur(grey, (0, 0), 1.0), np.float32)
+    if arr.dtype not in (np.uint8, np.uint16, np.float32):
+        arr = arr.astype(np.float32)
+    uv32 = np.asarray(uv, np.float32)
+    values = cv2.remap(arr, uv32[:, 0][None], uv32[:, 1][None], cv2.INTER_LINEAR)[0]
+    values = np.asarray(values, np.float64)
+    if values.ndim == 2:
+        values = values[:, :3] @ np.array([0.299, 0.587, 0.114])
+    return np.nan_to_num(values)
 
 
 def _visible(samples: SurfaceSamples, camera: Camera, pose: Pose) -> tuple[F64, F64]:
@@ -180,16 +188,16 @@ def _harmonics(normals: F64) -> F64:
                      3.0 * z * z - 1.0], axis=1)
 
 
-def shading_agreement(grey: NDArray[np.float32], camera: Camera, pose: Pose,
+def shading_agreement(image: NDArray[np.generic], camera: Camera, pose: Pose,
                       samples: SurfaceSamples) -> float | None:
     """How well the surface at ``pose`` explains the image's intensities.
 
     Parameters
     ----------
-    grey : (H, W) float32
-        :func:`shading_image` of the scene.
+    image : (H, W) or (H, W, 3|4) array
+        The scene, as :func:`intensity_at` reads it.
     camera : Camera
-        Scene camera (its size matches ``grey``).
+        Scene camera (its size matches the image).
     pose : Pose
         Object -> camera, the frame of ``samples``.
     samples : SurfaceSamples
@@ -205,15 +213,16 @@ def shading_agreement(grey: NDArray[np.float32], camera: Camera, pose: Pose,
     uv, normals = _visible(samples, camera, pose)
     if len(uv) < MIN_VISIBLE:
         return None
-    uv32 = uv.astype(np.float32)
-    intensity = cv2.remap(grey, uv32[:, 0][None], uv32[:, 1][None],
-                          cv2.INTER_LINEAR)[0].astype(np.float64)
+    intensity = intensity_at(image, uv)
     basis = _harmonics(normals)
     weights = np.ones(len(intensity))
     residual = intensity - intensity.mean()
     for _ in range(_IRLS_PASSES):
-        root = np.sqrt(weights)
-        coef, *_ = np.linalg.lstsq(basis * root[:, None], intensity * root, rcond=None)
+        # Normal equations (9 x 9): a few hundred samples make them cheap;
+        # least squares on them copes with a rank-deficient basis (a flat
+        # face shows one normal).
+        weighted = basis.T * weights
+        coef, *_ = np.linalg.lstsq(weighted @ basis, weighted @ intensity, rcond=None)
         residual = intensity - basis @ coef
         sigma = 1.4826 * float(np.median(np.abs(residual)))
         if sigma <= 0.0:

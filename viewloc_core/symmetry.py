@@ -437,10 +437,47 @@ def canonical_pose(
 def min_rotation_error_deg(
     R_est: NDArray[np.floating], R_gt: NDArray[np.floating], sym: Symmetries
 ) -> float:
-    """Rotation error (deg) minimised over the object's symmetries (exact for continuous)."""
-    gt = Pose(np.asarray(R_gt, dtype=np.float64), np.zeros(3))
-    return rotation_angle_deg(np.asarray(R_est, dtype=np.float64),
-                              canonical_pose(gt, sym, R_ref=R_est).R_m2c)
+    """Rotation error (deg) minimised over the object's symmetries (exact for continuous).
+
+    The smallest angle of ``R_estᵀ R_gt S_R`` over the group, the continuous
+    angle in closed form per discrete element (:func:`canonical_pose`'s
+    rule, without its tie-breaking: the minimum is the same).
+    """
+    R_e = np.asarray(R_est, dtype=np.float64)
+    R_g = np.asarray(R_gt, dtype=np.float64)
+    best = math.inf
+    for D in sym.discrete:
+        S_R = D[:3, :3]
+        if sym.continuous_axis is not None:
+            theta = _best_angle_about(S_R @ R_e.T @ R_g, sym.continuous_axis)
+            S_R = _rotation_about(sym.continuous_axis, theta, np.zeros(3))[:3, :3] @ S_R
+        best = min(best, rotation_angle_deg(R_e, R_g @ S_R))
+    return best
+
+
+def within_angle_deg(R_a: NDArray[np.floating], R_b: NDArray[np.floating], sym: Symmetries,
+                     max_deg: float) -> bool:
+    """Whether a symmetric equivalent of ``R_b`` is within ``max_deg`` of ``R_a``.
+
+    :func:`min_rotation_error_deg` ``< max_deg``, by the trace of the
+    relative rotation (cos of the angle = (trace - 1) / 2) maximised in
+    closed form over the continuous axis: about 20 times faster, for
+    comparisons away from 0° (the trace loses half the digits there).
+    """
+    R_rel = np.asarray(R_a, dtype=np.float64).T @ np.asarray(R_b, dtype=np.float64)
+    best_trace = -math.inf
+    for D in sym.discrete:
+        M = D[:3, :3] @ R_rel  # trace(R_rel D) = trace(D R_rel)
+        if sym.continuous_axis is None:
+            best_trace = max(best_trace, float(np.trace(M)))
+            continue
+        a = sym.continuous_axis
+        K = np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
+        along = float(a @ M @ a)
+        # trace(M R_a(θ)) = cos θ (trace M - aᵀMa) + sin θ trace(M K) + aᵀMa.
+        best_trace = max(best_trace, math.hypot(float(np.trace(M)) - along,
+                                                float(np.trace(M @ K))) + along)
+    return (best_trace - 1.0) / 2.0 > math.cos(math.radians(max_deg))
 
 
 #: Largest declared group accepted (a 60-tooth gear with a flip has 120 elements).

@@ -16,8 +16,8 @@ from viewloc_core.render import Light, Renderer, prepare
 from viewloc_core.shading import (
     MIN_VISIBLE,
     _visible,
+    intensity_at,
     shading_agreement,
-    shading_image,
     surface_samples,
 )
 
@@ -35,7 +35,7 @@ LIGHTS = [
 
 @pytest.fixture(scope="module")
 def blob_renders():
-    """(samples, [(grey image, true pose)]) of the blob at a few poses and lights."""
+    """(samples, [(RGB image, true pose)]) of the blob at a few poses and lights."""
     mesh = blob()
     samples = surface_samples(mesh.vertices, mesh.faces)
     prepared = prepare(mesh)
@@ -46,7 +46,7 @@ def blob_renders():
             pose = Pose(R, np.array([30.0 * (seed - 1.5), 10.0, 450.0]))
             out = renderer.render(prepared, CAM, pose, lights=LIGHTS[seed % 2],
                                   background_rgb=(90, 90, 90))
-            scenes.append((shading_image(out.color), pose))
+            scenes.append((out.color, pose))
     return samples, scenes
 
 
@@ -79,9 +79,10 @@ def test_the_true_pose_explains_the_shading_better_than_the_other_side(blob_rend
 @given(gain=st.floats(0.05, 20.0), offset=st.floats(-500.0, 500.0))
 def test_agreement_ignores_brightness_and_contrast(blob_renders, gain, offset):
     samples, scenes = blob_renders
-    grey, truth = scenes[0]
+    image, truth = scenes[0]
+    grey = image.astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32)
     base = shading_agreement(grey, CAM, truth, samples)
-    changed = shading_agreement((grey * gain + offset).astype(np.float32), CAM, truth, samples)
+    changed = shading_agreement(grey * gain + offset, CAM, truth, samples)
     assert base is not None and changed is not None
     assert changed == pytest.approx(base, abs=2e-3)
 
@@ -147,12 +148,18 @@ def test_a_nearer_part_hides_what_is_behind_it():
     assert np.allclose(normals, [0.0, 0.0, -1.0], atol=1e-6)
 
 
-def test_shading_image_takes_any_supported_image():
+def test_intensity_is_read_from_any_supported_image():
     rgb = np.zeros((32, 48, 3), np.uint8)
     rgb[:, 24:] = (200, 100, 50)
     rgba = np.dstack([rgb, np.full((32, 48), 255, np.uint8)])
-    for image in (rgb, rgba, rgb.astype(np.uint16) * 257, rgb[:, :, 0],
-                  rgb.astype(np.float32) / 255.0):
-        grey = shading_image(image)
-        assert grey.shape == (32, 48) and grey.dtype == np.float32
-        assert grey[16, 40] > grey[16, 4]
+    uv = np.array([[40.0, 16.0], [4.0, 16.0], [23.5, 10.0]])
+    luminance = 0.299 * 200 + 0.587 * 100 + 0.114 * 50
+    for image, unit in ((rgb, 1.0), (rgba, 1.0), (rgb.astype(np.uint16) * 257, 257.0),
+                        (rgb.astype(np.float64) / 255.0, 1 / 255.0)):
+        np.testing.assert_allclose(intensity_at(image, uv), [luminance * unit, 0.0,
+                                                             luminance * unit / 2], rtol=1e-3)
+    grey = rgb[:, :, 0].copy()
+    np.testing.assert_allclose(intensity_at(grey, uv), [200.0, 0.0, 100.0])
+    grey_nan = grey.astype(np.float32)
+    grey_nan[16, 4] = np.nan
+    assert np.isfinite(intensity_at(grey_nan, uv)).all()

@@ -22,6 +22,7 @@ from viewloc_core.symmetry import (
     symmetries_from_bop,
     symmetries_to_bop,
     symmetry_transforms,
+    within_angle_deg,
 )
 
 
@@ -193,6 +194,37 @@ def test_canonical_pose_is_the_same_for_all_equivalents(q, theta, flip):
     best_deg = np.degrees(np.arccos(min(best_cos, 1.0)))
     assert rotation_angle_deg(np.eye(3), a.R_m2c) <= best_deg + 1e-6
     assert min_rotation_error_deg(R, R @ S, sym) < 1e-5
+
+
+@settings(max_examples=60, deadline=None)
+@given(a=st.integers(0, 10_000), b=st.integers(0, 10_000), flip=st.booleans(),
+       continuous=st.booleans(), folds=st.integers(1, 6))
+def test_min_rotation_error_is_the_angle_to_the_nearest_equivalent(a, b, flip, continuous,
+                                                                  folds):
+    # A part with an n-fold axis (or a continuous one) and optionally a
+    # flip: the error is the angle to the symmetric equivalent of the
+    # truth closest to the estimate, which canonical_pose picks, and no
+    # sampled equivalent is closer.
+    transforms = [np.eye(4)]
+    for k in range(1, folds):
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_rotvec([0, 0, 2 * np.pi * k / folds]).as_matrix()
+        transforms.append(T)
+    if flip:
+        transforms += [T @ np.diag([1.0, -1.0, -1.0, 1.0]) for T in list(transforms)]
+    sym = Symmetries(np.stack(transforms), np.array([0.0, 0, 1]) if continuous else None,
+                     np.zeros(3) if continuous else None)
+    R_est = Rotation.random(random_state=a).as_matrix()
+    R_gt = Rotation.random(random_state=b).as_matrix()
+    nearest = canonical_pose(Pose(R_gt, np.array([0.0, 0, 500.0])), sym, R_ref=R_est)
+    error = min_rotation_error_deg(R_est, R_gt, sym)
+    assert error == pytest.approx(rotation_angle_deg(R_est, nearest.R_m2c), abs=1e-6)
+    sampled = R_gt @ symmetry_transforms(sym, 5.0)[:, :3, :3]
+    assert error <= min(rotation_angle_deg(R_est, R) for R in sampled) + 1e-6
+    # The fast threshold test agrees, away from the threshold.
+    for limit in (10.0, 30.0, 90.0, 150.0):
+        if abs(error - limit) > 1e-4:
+            assert within_angle_deg(R_est, R_gt, sym, limit) == (error < limit)
 
 
 def test_canonical_pose_discrete_moves_translation_with_offset():
