@@ -43,10 +43,10 @@ from viewloc_core.errors import InvalidImageError, InvalidInputError
 from viewloc_core.gradient import image_gradient
 from viewloc_core.normal_search import search_normals
 from viewloc_core.pose import Pose
+from viewloc_core.robust import median, tukey_weights
 
 Array = NDArray[np.float64]
 
-_TUKEY_C = 4.685
 
 #: ``converged`` holds when the last update was below this many times the
 #: tolerances: 0.2 px by default. The fit jitters by a few hundredths of a
@@ -453,26 +453,6 @@ def _matches(
     return _Matches(J, r, len(uv))
 
 
-def _median(values: Array) -> float:
-    """Median of a 1D array (np.median's value, without its overhead)."""
-    n = len(values)
-    half = n // 2
-    if n % 2:
-        return float(np.partition(values, half)[half])
-    part = np.partition(values, (half - 1, half))
-    return 0.5 * float(part[half - 1] + part[half])
-
-
-def _tukey_weights(r: Array, min_scale: float) -> tuple[Array, float]:
-    mad = _median(np.abs(r - _median(r)))
-    scale = max(1.4826 * mad, min_scale)
-    u = r * (1.0 / (_TUKEY_C * scale))
-    w = 1.0 - u * u
-    np.maximum(w, 0.0, out=w)
-    w *= w
-    return w, scale
-
-
 @dataclass(frozen=True, slots=True)
 class _Step:
     """Size of one Gauss-Newton update (infinite before the first)."""
@@ -564,7 +544,7 @@ def refine_pose(
             m = _matches(proj, pose, camera, edges, level, search, opts)
             if len(m.r) < 6:
                 break
-            w, _ = _tukey_weights(m.r, min_scale=0.5 * 2.0**level)
+            w, _ = tukey_weights(m.r, min_scale=0.5 * 2.0**level)
             if np.count_nonzero(w) < 6:
                 break
             Jw = m.J * w[:, None]
@@ -590,7 +570,7 @@ def refine_pose(
                 break
             # After the first levels the search can shrink as the pose settles.
             if level == 0:
-                search = max(3, min(search, int(math.ceil(4 * _median(np.abs(m.r)) + 2))))
+                search = max(3, min(search, int(math.ceil(4 * median(np.abs(m.r)) + 2))))
     if iterations:
         pose = _reorthonormalized(pose)
     return _final(pose, camera, projector, edges, opts, iterations, last)
@@ -702,7 +682,7 @@ def _final(
         return RefinementResult(pose, False, iterations, math.inf, fraction,
                                 chance_fraction=chance, support=support)
     r, J = m.r[inl], m.J[inl]
-    w, _ = _tukey_weights(r, min_scale=0.25)
+    w, _ = tukey_weights(r, min_scale=0.25)
     H = J.T @ (J * w[:, None])
     dof = max(float(w.sum()) - 6.0, 1.0)
     sigma2 = float((w * r * r).sum()) / dof

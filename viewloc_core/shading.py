@@ -34,6 +34,7 @@ from numpy.typing import NDArray
 
 from viewloc_core.camera import Camera
 from viewloc_core.pose import Pose
+from viewloc_core.robust import tukey_weights
 
 F64 = NDArray[np.float64]
 
@@ -48,9 +49,6 @@ MIN_FACING_COS = 0.3
 
 #: Fewest visible samples for a fit of the 9 coefficients.
 MIN_VISIBLE = 40
-
-#: Tukey's biweight constant (in robust standard deviations) of the fit.
-_TUKEY_C = 4.685
 
 #: Reweighting passes of the robust fit.
 _IRLS_PASSES = 4
@@ -217,6 +215,9 @@ def shading_agreement(image: NDArray[np.generic], camera: Camera, pose: Pose,
     basis = _harmonics(normals)
     weights = np.ones(len(intensity))
     residual = intensity - intensity.mean()
+    # The scale's floor is far below any image noise: it only keeps an exact
+    # fit (a synthetic image) from dividing by zero.
+    min_scale = 1e-9 * (1.0 + float(np.abs(intensity).max()))
     for _ in range(_IRLS_PASSES):
         # Normal equations (9 x 9): a few hundred samples make them cheap;
         # least squares on them copes with a rank-deficient basis (a flat
@@ -224,10 +225,7 @@ def shading_agreement(image: NDArray[np.generic], camera: Camera, pose: Pose,
         weighted = basis.T * weights
         coef, *_ = np.linalg.lstsq(weighted @ basis, weighted @ intensity, rcond=None)
         residual = intensity - basis @ coef
-        sigma = 1.4826 * float(np.median(np.abs(residual)))
-        if sigma <= 0.0:
-            break
-        weights = np.clip(1.0 - (residual / (_TUKEY_C * sigma)) ** 2, 0.0, None) ** 2
+        weights, _ = tukey_weights(residual, min_scale)
     total_weight = float(weights.sum())
     if total_weight <= 0.0:
         return None

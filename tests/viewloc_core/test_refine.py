@@ -12,8 +12,9 @@ from viewloc_core.camera import Camera
 from viewloc_core.contour_model import build_contour_model
 from viewloc_core.errors import InvalidImageError, InvalidInputError
 from viewloc_core.pose import Pose, rotation_angle_deg
-from viewloc_core.refine import EdgePyramid, RefineOptions, _median, prepare_edges, refine_pose
+from viewloc_core.refine import EdgePyramid, RefineOptions, prepare_edges, refine_pose
 from viewloc_core.render import Renderer, prepare
+from viewloc_core.robust import median
 from viewloc_core.view_sphere import subdivided_sphere
 
 CAM = Camera(600.0, 600.0, 322.5, 237.5, 640, 480)
@@ -168,7 +169,7 @@ def test_colour_gradient_takes_the_strongest_channel_per_pixel():
 @pytest.mark.parametrize("n", [1, 2, 7, 200, 201])
 def test_median_equals_numpy(n):
     values = np.random.default_rng(n).normal(size=n)
-    assert _median(values) == pytest.approx(float(np.median(values)), abs=1e-15)
+    assert median(values) == pytest.approx(float(np.median(values)), abs=1e-15)
 
 
 def test_gradient_planes_match_the_interleaved_gradients():
