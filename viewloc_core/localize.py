@@ -193,9 +193,9 @@ def _surface_samples(model: ObjectModel) -> SurfaceSamples | None:
     fitted in (None without a mesh), cached."""
     if model.mesh_vertices_mm is None or model.mesh_faces is None or not len(model.mesh_faces):
         return None
-    vertices = np.asarray(model.mesh_vertices_mm, np.float64) - model.origin_offset_mm
     faces = model.mesh_faces
-    return cached_per_model(_SURFACE_CACHE, model, lambda _: surface_samples(vertices, faces))
+    return cached_per_model(_SURFACE_CACHE, model, lambda m: surface_samples(
+        np.asarray(m.mesh_vertices_mm, np.float64) - m.origin_offset_mm, faces))
 
 
 def _contour_model(model: ObjectModel) -> ContourModel | None:
@@ -290,12 +290,6 @@ class _Shading:
         return _fit_rank(result) + SHADING_WEIGHT * (agreement or 0.0)
 
 
-def _same_view(R_a: NDArray[np.float64], R_b: NDArray[np.float64], model: ObjectModel) -> bool:
-    """Whether two rotations are within ``DISTINCT_VIEW_DEG`` of each other,
-    over the part's symmetries."""
-    return within_angle_deg(R_a, R_b, model.symmetry_group(), DISTINCT_VIEW_DEG)
-
-
 def _other_sides(
     model: ObjectModel, loc: _Located, factor: float, camera: Camera, edges: EdgePyramid,
     contour: ContourModel, shading: _Shading, t_view: int, similarity: Similarity2D,
@@ -313,6 +307,7 @@ def _other_sides(
     best by :meth:`_Shading.rank` gets the full fit, which replaces
     ``result`` when it ranks higher.
     """
+    sym = model.symmetry_group()
     tried = [result.pose.R_m2c]
     best: tuple[float, int, Similarity2D, Pose, Pose] | None = None
     for cand in loc.candidates[1:]:
@@ -320,7 +315,7 @@ def _other_sides(
             break  # best first
         sim_c = _to_full_resolution(cand.sim, factor)
         pose_c = _pose_centred(model, cand.view, sim_c, camera)
-        if any(_same_view(pose_c.R_m2c, R, model) for R in tried):
+        if any(within_angle_deg(pose_c.R_m2c, R, sym, DISTINCT_VIEW_DEG) for R in tried):
             continue
         tried.append(pose_c.R_m2c)
         quick = refine_pose(edges, camera, pose_c, contour, QUICK_REFINE)

@@ -378,11 +378,16 @@ def symmetry_transforms(sym: Symmetries, continuous_step_deg: float = 2.0) -> Ar
     return np.stack([C @ D for D in sym.discrete for C in conts])
 
 
-def _best_angle_about(M: Array, axis: Array) -> float:
-    """θ maximising trace(M · R_axis(θ)) (closed form, Rodrigues' formula)."""
+def _trace_about(M: Array, axis: Array) -> tuple[float, float, float]:
+    """(A, B, C) with trace(M · R_axis(θ)) = A cos θ + B sin θ + C (Rodrigues' formula)."""
     K = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
-    A = float(np.trace(M) - axis @ M @ axis)
-    B = float(np.trace(M @ K))
+    along = float(axis @ M @ axis)
+    return float(np.trace(M)) - along, float(np.trace(M @ K)), along
+
+
+def _best_angle_about(M: Array, axis: Array) -> float:
+    """θ maximising trace(M · R_axis(θ)) (closed form)."""
+    A, B, _ = _trace_about(M, axis)
     return math.atan2(B, A)
 
 
@@ -471,12 +476,8 @@ def within_angle_deg(R_a: NDArray[np.floating], R_b: NDArray[np.floating], sym: 
         if sym.continuous_axis is None:
             best_trace = max(best_trace, float(np.trace(M)))
             continue
-        a = sym.continuous_axis
-        K = np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
-        along = float(a @ M @ a)
-        # trace(M R_a(θ)) = cos θ (trace M - aᵀMa) + sin θ trace(M K) + aᵀMa.
-        best_trace = max(best_trace, math.hypot(float(np.trace(M)) - along,
-                                                float(np.trace(M @ K))) + along)
+        A, B, C = _trace_about(M, sym.continuous_axis)
+        best_trace = max(best_trace, math.hypot(A, B) + C)  # max over θ of A cos + B sin
     return (best_trace - 1.0) / 2.0 > math.cos(math.radians(max_deg))
 
 
