@@ -111,7 +111,8 @@ def test_worker_learns_through_the_api_cancels_and_records_dead_horses(
         assert client.get("/readyz").status_code == 200
         # Enqueued before any worker exists: it waits in the queue.
         spec = {"name": "box", "units": "mm",
-                "learning": {"max_level": 0, "min_level": 0, "object_px": 64}}
+                "learning": {"max_level": 0, "min_level": 0, "contour_level": 1,
+                             "object_px": 64}}
         r = client.post("/v1/objects", files={"mesh": ("box.stl", _box(), "model/stl")},
                         data={"spec": json.dumps(spec)})
         assert r.status_code == 202, r.text

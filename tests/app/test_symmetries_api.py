@@ -22,7 +22,7 @@ from viewloc_client import ViewlocClient
 __all__ = ["learned_barbell"]
 
 SLEEPY = {**TEST_TASKS, "learn_mesh": TEST_TASKS["sleepy"]}
-FAST = {"max_level": 0, "min_level": 0, "object_px": 64}
+FAST = {"max_level": 0, "min_level": 0, "contour_level": 1, "object_px": 64}
 FLIP_X = [1, 0, 0, 0, 0, -1, 0, 0, 0, 0, -1, 0, 0, 0, 0, 1]
 TURN_Z_90 = [0, -1, 0, 0, 1, 0, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]
 MIRROR_X = [-1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]

@@ -92,7 +92,8 @@ def test_serve_with_two_workers_learns_once_and_measures(
     url, data = served
     mesh = bytes(trimesh.creation.box((40.0, 20.0, 10.0)).export(file_type="stl"))
     spec = {"name": "box", "units": "mm",
-            "learning": {"max_level": 0, "min_level": 0, "object_px": 64}}
+            "learning": {"max_level": 0, "min_level": 0, "contour_level": 1,
+                         "object_px": 64}}
     with httpx.Client(base_url=url, timeout=30) as client:
         r = client.post("/v1/objects", files={"mesh": ("box.stl", mesh, "model/stl")},
                         data={"spec": json.dumps(spec)})

@@ -26,7 +26,8 @@ def test_learn_then_match(tmp_path: Path) -> None:
     mesh_path = ROOT / "viewloc_bench" / "assets" / "barbell.stl"
     out = subprocess.run(
         [sys.executable, "-m", "viewloc_cli", "learn", str(mesh_path), "--units", "mm",
-         "-o", str(tmp_path / "model"), "--learning", '{"max_level": 0, "min_level": 0}'],
+         "-o", str(tmp_path / "model"), "--learning",
+         '{"max_level": 0, "min_level": 0, "contour_level": 1}'],
         capture_output=True, text=True, env=env, cwd=ROOT, timeout=180, check=True)
     summary = json.loads(out.stdout.strip().splitlines()[-1])
     assert summary["training_views"] == 12 and len(summary["sha256"]) == 64

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from viewloc_core.camera import Camera
+from viewloc_core.contour_model import ContourModel
 from viewloc_core.errors import Cancelled, InvalidInputError
 from viewloc_core.learn import (
     LearningConfig,
@@ -29,6 +30,9 @@ def test_config_from_dict_validates_fields():
     assert err.value.field == "learning.nonsense"
     with pytest.raises(InvalidInputError):
         LearningConfig.from_dict({"object_px": "big"})
+    with pytest.raises(InvalidInputError) as err:
+        LearningConfig.from_dict({"contour_level": 5})
+    assert err.value.field == "learning.contour_level"
 
 
 def test_model_views_cluster_training_views(bracket_model):
@@ -40,10 +44,14 @@ def test_model_views_cluster_training_views(bracket_model):
     for view in range(model.n_model_views):
         members = np.flatnonzero(model.training.model_view == view)
         assert model.model_views[view].n_members == len(members)
+    # The refinement's contour views come from the finer contour_level
+    # sphere (642 directions), not from the 42 training views.
+    contour = ContourModel.from_arrays(model.contour)
+    assert contour.n_views == len(view_directions(LearningConfig().contour_level)) == 642
 
 
 def test_learning_is_deterministic(bracket_mesh):
-    config = LearningConfig(max_level=0, min_level=0, seed=3)
+    config = LearningConfig(max_level=0, min_level=0, contour_level=1, seed=3)
     a, meta_a = model_to_arrays(learn_from_mesh(bracket_mesh, config))
     b, meta_b = model_to_arrays(learn_from_mesh(bracket_mesh, config))
     assert meta_a == meta_b
@@ -59,7 +67,8 @@ def test_learning_can_be_cancelled(bracket_mesh):
         return len(calls) > 3
 
     with pytest.raises(Cancelled):
-        learn_from_mesh(bracket_mesh, LearningConfig(max_level=0, min_level=0), should_stop=stop)
+        learn_from_mesh(bracket_mesh, LearningConfig(max_level=0, min_level=0, contour_level=1),
+                        should_stop=stop)
 
 
 def test_learning_from_real_style_images(renderer, bracket_mesh):

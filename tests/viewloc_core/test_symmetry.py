@@ -345,7 +345,7 @@ def test_learning_stores_the_declared_group_and_localize_canonicalises_with_it(t
     # asymmetric (a mark QA cares about) in one model, and in the other adds
     # a continuous axis the detector would never accept.
     mesh = trimesh.creation.box((60.0, 30.0, 15.0))
-    config = LearningConfig(max_level=0, min_level=0, object_px=64)
+    config = LearningConfig(max_level=0, min_level=0, contour_level=1, object_px=64)
     plain = learn_from_mesh(mesh, config, symmetries=declared_symmetries({}))
     assert plain.symmetries.shape == (1, 4, 4) and plain.symmetry_axis is None
     declared = declared_symmetries({"symmetries_discrete": [_FLIP_X],
