@@ -40,6 +40,7 @@ from viewloc_core.features import (
     KIND_ARC,
     KIND_JUNCTION,
     KIND_PARALLEL,
+    KIND_U_JUNCTION,
     ORIENTATION_BINS,
     ImageFeatures,
     orientation_bin,
@@ -54,9 +55,11 @@ F64 = NDArray[np.float64]
 
 #: Attribute standard deviations per feature kind (junction: opening angle rad,
 #: log arm ratio; parallel pair: log overlap/separation, unused; arc: angular
-#: span rad, unused; spans vary with occlusion and where the chain splits).
+#: span rad, unused; spans vary with occlusion and where the chain splits;
+#: U-junction: mean and half difference of two opening angles, each the
+#: junction's 0.12 over √2).
 ATTR_SIGMA = {KIND_JUNCTION: np.array([0.12, 0.7]), KIND_PARALLEL: np.array([0.5, 1e3]),
-              KIND_ARC: np.array([0.6, 1e3])}
+              KIND_ARC: np.array([0.6, 1e3]), KIND_U_JUNCTION: np.array([0.09, 0.09])}
 
 
 @dataclass(frozen=True, slots=True)
@@ -269,7 +272,13 @@ def _log_background_density(kind: int, attrs: F64) -> F64:
     Clutter arcs are mostly short (on the paper set their spans fall off
     about exponentially from the 80° minimum, scale ~75°) and rarely closed
     (~1%): a closed circle counts as a 2% chance spread over 0.5 rad.
+    A U-junction's two interior angles, each uniform over the accepted
+    range of width L, make its (mean, half difference) uniform with density
+    4 / L² over the half of the square they can reach.
     """
+    if kind == KIND_U_JUNCTION:
+        span = np.pi - 2 * np.radians(25.0)
+        return np.full(len(attrs), np.log(4.0 / span**2))
     if kind == KIND_JUNCTION:
         span = np.pi - 2 * np.radians(25.0)
         return -np.log(span) - 0.5 * (attrs[:, 1] / 1.2) ** 2 - np.log(1.2 * np.sqrt(2 * np.pi))

@@ -6,6 +6,8 @@ From a grey or colour image (8 or 16 bit) this extracts
   and refit alignments and by the pose refinement;
 - **segments**: straight edge segments (LSD, Grompone von Gioi et al. 2010);
 - **junctions**: pairs of segments meeting at a vertex (L-junctions/corners);
+- **U-junctions**: a segment with a junction at each end, both arms on the
+  same side (:mod:`viewloc_core.u_junctions`);
 - **parallel pairs**: two overlapping, nearly parallel segments;
 - **arcs**: circular arcs fitted to chains of edge pixels (discs and holes
   seen end-on give few straight segments but clean circles).
@@ -45,6 +47,7 @@ from viewloc_core.feature_kernels import (
     window_bin_counts,
 )
 from viewloc_core.gradient import image_gradient
+from viewloc_core.u_junctions import u_junctions
 
 F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]
@@ -56,6 +59,7 @@ ORIENTATION_BINS = 16
 KIND_JUNCTION = 0
 KIND_PARALLEL = 1
 KIND_ARC = 2
+KIND_U_JUNCTION = 3
 
 
 @dataclass(frozen=True, slots=True)
@@ -128,19 +132,21 @@ class GroupedFeatures:
     Attributes
     ----------
     kind : (F,) int8
-        KIND_JUNCTION, KIND_PARALLEL or KIND_ARC.
+        KIND_JUNCTION, KIND_PARALLEL, KIND_ARC or KIND_U_JUNCTION.
     xy : (F, 2) float32
         Position, pixels (arc: centre of its circle).
     theta : (F,) float32
         Orientation, radians in [0, 2π) (junction bisector; arc: direction
-        from the centre to the middle of the arc) or [0, π) (parallel).
+        from the centre to the middle of the arc; U-junction: the base's
+        normal towards the arms) or [0, π) (parallel).
     scale : (F,) float32
         Size, pixels (junction: geometric mean of arm lengths; parallel pair:
-        separation of the two lines; arc: radius).
+        separation of the two lines; arc: radius; U-junction: base length).
     attrs : (F, 2) float32
         Similarity-invariant attributes. Junction: (opening angle in radians,
         log arm-length ratio). Parallel pair: (log overlap/separation,
-        log length ratio). Arc: (angular span in radians, 0).
+        log length ratio). Arc: (angular span in radians, 0). U-junction:
+        (mean, half difference of its two opening angles, radians).
     """
 
     kind: NDArray[np.int8]
@@ -173,7 +179,7 @@ class ImageFeatures:
     segments : (S, 4) float32
         Segment end points ``x1, y1, x2, y2``.
     grouped : GroupedFeatures
-        Junctions and parallel pairs.
+        Junctions, U-junctions, parallel pairs and arcs.
     orientation_bits : (H, W) uint16
         Bit ``b`` set where an edge of orientation bin ``b`` lies within the
         spread radius (LINE-2D's spread map); for fast verification.
@@ -606,16 +612,13 @@ _Parts = tuple[NDArray[np.int8], F32, F32, F32, F32]
 
 
 def _group(seg: F32, config: FeatureConfig) -> _Parts:
-    """Junctions and parallel pairs from segments."""
-    junctions = _junctions(seg, config)
+    """Junctions, U-junctions and parallel pairs from segments."""
+    junctions, meeting_ends, vertex = _junctions(seg, config)
+    xy, theta, scale, attrs = u_junctions(seg, meeting_ends, vertex)
+    u_parts = (np.full(len(xy), KIND_U_JUNCTION, np.int8), xy, theta, scale, attrs)
     parallels = _parallel_pairs(seg, config)
-    return (
-        np.concatenate([junctions[0], parallels[0]]),
-        np.concatenate([junctions[1], parallels[1]]),
-        np.concatenate([junctions[2], parallels[2]]),
-        np.concatenate([junctions[3], parallels[3]]),
-        np.concatenate([junctions[4], parallels[4]]),
-    )
+    return tuple(np.concatenate([junctions[i], u_parts[i], parallels[i]])  # type: ignore[return-value]
+                 for i in range(5))
 
 
 def _concat_parts(parts: list[_Parts]) -> GroupedFeatures:
@@ -635,18 +638,31 @@ def _no_parts() -> _Parts:
     )
 
 
-def _junctions(seg: F32, config: FeatureConfig) -> _Parts:
-    """L-junctions: two segment ends that (nearly) meet at a corner."""
+def _junctions(seg: F32, config: FeatureConfig) -> tuple[_Parts, NDArray[np.int64], F64]:
+    """L-junctions: two segment ends that (nearly) meet at a corner.
+
+    Returns
+    -------
+    parts : _Parts
+        The junction features.
+    meeting_ends : (J, 2) int64
+        Per junction, the two segment ends that meet, as rows of the ends
+        table ``[starts; ends]`` (``e < n``: start of segment ``e``, else end
+        of segment ``e - n``).
+    vertex : (J, 2) float64
+        Corner position, pixels.
+    """
     n = len(seg)
+    none = (_no_parts(), np.zeros((0, 2), np.int64), np.zeros((0, 2)))
     if n < 2:
-        return _no_parts()
+        return none
     ends = np.concatenate([seg[:, :2], seg[:, 2:]]).astype(np.float64)  # (2n, 2)
     length = np.hypot(seg[:, 2] - seg[:, 0], seg[:, 3] - seg[:, 1]).astype(np.float64)
     owner = np.concatenate([np.arange(n), np.arange(n)])
     max_gap = config.junction_gap_frac * float(length.max()) + config.junction_gap_px
     pairs = cKDTree(ends).query_pairs(max_gap, output_type="ndarray")
     if len(pairs) == 0:
-        return _no_parts()
+        return none
     a, b = pairs[:, 0], pairs[:, 1]
     sa, sb = owner[a], owner[b]
     ok = sa != sb
@@ -661,7 +677,7 @@ def _junctions(seg: F32, config: FeatureConfig) -> _Parts:
     a, b, sa, sb = a[ok], b[ok], sa[ok], sb[ok]
     end_a, end_b = np.compress(ok, end_a, axis=0), np.compress(ok, end_b, axis=0)
     if len(a) == 0:
-        return _no_parts()
+        return none
     # Arm direction: from the meeting end towards the far end of each segment
     # (the other end of segment s is row s + n or s - n of ``ends``).
     far_a = np.take(ends, np.where(a < n, a + n, a - n), axis=0)
@@ -674,10 +690,10 @@ def _junctions(seg: F32, config: FeatureConfig) -> _Parts:
     opening = np.arccos(cos)
     lo = np.radians(config.min_junction_angle_deg)
     ok = (opening > lo) & (opening < np.pi - lo)
-    sa, sb, opening = sa[ok], sb[ok], opening[ok]
+    sa, sb, opening, a, b = sa[ok], sb[ok], opening[ok], a[ok], b[ok]
     ua, ub = np.compress(ok, ua, axis=0), np.compress(ok, ub, axis=0)
     if len(sa) == 0:
-        return _no_parts()
+        return none
     # Vertex: intersection of the two lines (solve p_a + t ua = p_b + u ub).
     pa, pb = np.compress(ok, end_a, axis=0), np.compress(ok, end_b, axis=0)
     det = ua[:, 0] * (-ub[:, 1]) - ua[:, 1] * (-ub[:, 0])
@@ -700,13 +716,14 @@ def _junctions(seg: F32, config: FeatureConfig) -> _Parts:
     scale = np.sqrt(l1 * l2)
     attrs = np.stack([opening, np.log(l1 / l2)], axis=1)
     sel = near
+    kept_vertex = np.compress(sel, vertex, axis=0)
     return (
         np.full(int(sel.sum()), KIND_JUNCTION, np.int8),
-        np.compress(sel, vertex, axis=0).astype(np.float32),
+        kept_vertex.astype(np.float32),
         theta[sel].astype(np.float32),
         scale[sel].astype(np.float32),
         np.compress(sel, attrs, axis=0).astype(np.float32),
-    )
+    ), np.stack([a[sel], b[sel]], axis=1).astype(np.int64), kept_vertex
 
 
 def _parallel_pairs(seg: F32, config: FeatureConfig) -> _Parts:

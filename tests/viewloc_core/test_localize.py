@@ -90,14 +90,15 @@ def test_a_spare_location_competes_only_with_a_convincing_refinement() -> None:
 def test_a_smooth_part_is_turned_the_right_way_by_its_shading(renderer, monkeypatch):
     # An egg-like part's outline fits from views far apart (its front and
     # back mirror each other's outline); what tells them apart is how the
-    # light falls on it. 24 random poses under two lightings: measured 16
-    # within 10 deg, 12 with the shading cue switched off.
+    # light falls on it. 40 random poses under two lightings: measured 26
+    # within 10 deg, 22 with the shading cue switched off (24 poses: 16
+    # and 14, too few to tell the cue from the luck of the 2D stage).
     mesh = blob()
     model = learn_from_mesh(mesh, LearningConfig(max_level=1, min_level=1))
     cam = Camera(600.0, 600.0, 319.5, 239.5, 640, 480)
     prepared = prepare(mesh)
     scenes = []
-    for seed in range(24):
+    for seed in range(40):
         R = Rotation.random(random_state=100 + seed).as_matrix()
         pose = Pose(R, np.array([40.0 * ((seed % 3) - 1), 20.0, 500.0]))
         out = renderer.render(prepared, cam, pose, lights=LIGHTS[seed % 2],
@@ -113,5 +114,5 @@ def test_a_smooth_part_is_turned_the_right_way_by_its_shading(renderer, monkeypa
         return n
 
     with_shading = right_way(localize_module.SHADING_WEIGHT)
-    assert with_shading >= 15
+    assert with_shading >= 24
     assert with_shading >= right_way(0.0) + 3
