@@ -42,6 +42,7 @@ from viewloc_core.features import (
     KIND_PARALLEL,
     KIND_U_JUNCTION,
     ORIENTATION_BINS,
+    FeatureConfig,
     ImageFeatures,
     orientation_bin,
     orientation_turn,
@@ -264,6 +265,10 @@ def spread_subset(pts: F64, n: int, rng: np.random.Generator) -> NDArray[np.int6
     return np.array(chosen, np.int64)
 
 
+#: Width of the range of junction opening angles the features accept, rad.
+_OPENING_SPAN = np.pi - 2 * np.radians(FeatureConfig().min_junction_angle_deg)
+
+
 def _log_background_density(kind: int, attrs: F64) -> F64:
     """log f_bg(a): attribute density of clutter features.
 
@@ -277,11 +282,10 @@ def _log_background_density(kind: int, attrs: F64) -> F64:
     4 / L² over the half of the square they can reach.
     """
     if kind == KIND_U_JUNCTION:
-        span = np.pi - 2 * np.radians(25.0)
-        return np.full(len(attrs), np.log(4.0 / span**2))
+        return np.full(len(attrs), np.log(4.0 / _OPENING_SPAN**2))
     if kind == KIND_JUNCTION:
-        span = np.pi - 2 * np.radians(25.0)
-        return -np.log(span) - 0.5 * (attrs[:, 1] / 1.2) ** 2 - np.log(1.2 * np.sqrt(2 * np.pi))
+        return (-np.log(_OPENING_SPAN) - 0.5 * (attrs[:, 1] / 1.2) ** 2
+                - np.log(1.2 * np.sqrt(2 * np.pi)))
     if kind == KIND_ARC:
         lo, hi, tau = np.radians(80.0), np.radians(330.0), 1.3
         norm = tau * (1.0 - np.exp(-(hi - lo) / tau))

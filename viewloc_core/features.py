@@ -363,7 +363,7 @@ def extract_features(
     segment_parts = _group(segments, config)
     nearest, dist = _nearest_edge_result(nearest_job, edges)
     arcs = _arcs_on_edges(start_circles, edge_xy, edge_theta, nearest, dist, config)
-    grouped = _concat_parts([segment_parts, arcs])
+    grouped = _concat_parts([*segment_parts, arcs])
     return ImageFeatures(edge_xy, edge_theta, segments, grouped, bits, nearest, dist, (h, w))
 
 
@@ -611,14 +611,12 @@ def _segments(lines: NDArray[np.float32] | None, config: FeatureConfig,
 _Parts = tuple[NDArray[np.int8], F32, F32, F32, F32]
 
 
-def _group(seg: F32, config: FeatureConfig) -> _Parts:
+def _group(seg: F32, config: FeatureConfig) -> list[_Parts]:
     """Junctions, U-junctions and parallel pairs from segments."""
     junctions, meeting_ends, vertex = _junctions(seg, config)
     xy, theta, scale, attrs = u_junctions(seg, meeting_ends, vertex)
     u_parts = (np.full(len(xy), KIND_U_JUNCTION, np.int8), xy, theta, scale, attrs)
-    parallels = _parallel_pairs(seg, config)
-    return tuple(np.concatenate([junctions[i], u_parts[i], parallels[i]])  # type: ignore[return-value]
-                 for i in range(5))
+    return [junctions, u_parts, _parallel_pairs(seg, config)]
 
 
 def _concat_parts(parts: list[_Parts]) -> GroupedFeatures:

@@ -86,3 +86,20 @@ def test_a_drawn_box_gives_u_junctions_whatever_its_contrast():
         u = g.kind == KIND_U_JUNCTION
         found.append(sorted(np.round(g.scale[u] / 10).tolist()))
     assert len(found[0]) == 4 and found[0] == found[1]
+
+
+def test_clutter_density_of_u_attributes_matches_uniform_angles():
+    # Two independent opening angles, uniform over the accepted range: the
+    # density the alignment weighs U-junction pairings against.
+    from viewloc_core.align import _log_background_density
+
+    lo = math.radians(FeatureConfig().min_junction_angle_deg)
+    rng = np.random.default_rng(0)
+    a1, a2 = rng.uniform(lo, math.pi - lo, (2, 200_000))
+    attrs = np.stack([(a1 + a2) / 2, np.abs(a1 - a2) / 2], axis=1)
+    # Empirical density in a small box around a few points inside the region.
+    for centre in ((1.2, 0.2), (1.6, 0.5), (2.0, 0.1)):
+        half = 0.05
+        inside = np.all(np.abs(attrs - centre) < half, axis=1).mean() / (2 * half) ** 2
+        expected = math.exp(_log_background_density(KIND_U_JUNCTION, np.array([centre]))[0])
+        assert inside == pytest.approx(expected, rel=0.05)
