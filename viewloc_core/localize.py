@@ -73,7 +73,7 @@ MAX_SEARCH_SIDE_PX = 400
 FINAL_REFINE = RefineOptions()
 
 #: Short fit (coarse level, 3 iterations) that compares extra starts.
-QUICK_REFINE = RefineOptions(iterations=(0, 3), measure_chance=False)
+QUICK_REFINE = RefineOptions(iterations=(0, 3), measure_chance=False, point_stride=2)
 
 #: The short fit of a near-symmetric twin of a fit (see ``_other_sides``):
 #: the twin turns about the part's centroid, whose image stays where the

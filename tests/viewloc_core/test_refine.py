@@ -207,3 +207,19 @@ def test_dense_contour_views_keep_a_smooth_part_at_its_depth(renderer):
         worst_dz_mm[level] = max(errors)
     # Measured: 7.9 mm at level 3 against 39.9 mm at level 1 (42 views).
     assert worst_dz_mm[3] < 10.0 < 2.0 * worst_dz_mm[3] < worst_dz_mm[1]
+
+
+def test_a_fit_on_every_second_contour_point_converges_too(scene):
+    # Short fits that compare starts use half the points (QUICK_REFINE).
+    renderer, prepared, model = scene
+    rng = np.random.default_rng(0)
+    truth = Pose(Rotation.random(random_state=0).as_matrix(),
+                 np.array([rng.uniform(-50, 50), rng.uniform(-30, 30), 600.0]))
+    image = renderer.render(prepared, CAM, truth).color
+    init = _perturbed(truth, rng, 4.0, 0.02)
+    res = refine_pose(image, CAM, init, model, RefineOptions(point_stride=2))
+    assert rotation_angle_deg(res.pose.R_m2c, truth.R_m2c) < 1.0
+    assert np.linalg.norm(res.pose.t_m2c - truth.t_m2c) < 3.5
+    assert res.inlier_fraction > 0.7
+    with pytest.raises(InvalidInputError):
+        RefineOptions(point_stride=0)
