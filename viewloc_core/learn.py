@@ -64,6 +64,39 @@ BITS_EXPLAINED_EDGE = 2.0
 BITS_TRANSFORM = 48.0
 
 
+#: Depth renders (views × mesh faces) the contour views may cost in all:
+#: about 12 s with Mesa's software renderer on the 2-core machine (about 1.2
+#: µs per face and view). The LM-O can (45,666 faces) took 77 s to learn with
+#: 642 contour views, about 44 s with 162.
+CONTOUR_FACE_RENDERS = 10_000_000
+
+
+def contour_view_level(requested: int, n_faces: int) -> int:
+    """View-sphere level of the contour views for a mesh of ``n_faces`` faces.
+
+    The requested level, or the finest coarser one whose views × faces stay
+    within :data:`CONTOUR_FACE_RENDERS`, but not below level 2 (or the
+    requested level, if lower).
+
+    Parameters
+    ----------
+    requested : int
+        :attr:`LearningConfig.contour_level`.
+    n_faces : int
+        Faces of the mesh.
+
+    Returns
+    -------
+    int
+    """
+    level = requested
+    floor = min(requested, 2)
+    # Level L of the subdivided icosahedron has 10 * 4**L + 2 vertices.
+    while level > floor and (10 * 4**level + 2) * n_faces > CONTOUR_FACE_RENDERS:
+        level -= 1
+    return level
+
+
 @dataclass(frozen=True, slots=True)
 class LearningConfig:
     """How an object is learned.
@@ -85,7 +118,9 @@ class LearningConfig:
         outline and pull the fit nearer: at level 2 (about 16° apart) a smooth
         part's fits from the true pose ended a median 1.3 mm (up to 23 mm at
         950 mm) too near on the hard bench set, at level 3 0.3 mm. Each level
-        costs four times the depth renders (level 3: about 7 s).
+        costs four times the depth renders (level 3: about 7 s for a part of
+        5,000 faces); a mesh too dense for :data:`CONTOUR_FACE_RENDERS` gets
+        a coarser level, down to 2 (:func:`contour_view_level`).
     object_px : float
         Object diameter in training-image pixels.
     edge_samples : int
@@ -632,7 +667,8 @@ def learn_from_mesh(
         # 3D contour points per direction of a finer sphere than training
         # needs (see contour_level), in the centred frame the poses are
         # computed in, for the pose refinement (§5.2).
-        contour_dirs = np.array([v.direction for v in view_directions(config.contour_level,
+        level = contour_view_level(config.contour_level, len(centred.faces))
+        contour_dirs = np.array([v.direction for v in view_directions(level,
                                                                       config.max_polar_deg)])
         contour = build_contour_model(centred, contour_dirs, renderer, d0, f, (size, size))
     if progress is not None:

@@ -8,10 +8,12 @@ from viewloc_core.camera import Camera
 from viewloc_core.contour_model import ContourModel
 from viewloc_core.errors import Cancelled, InvalidInputError
 from viewloc_core.learn import (
+    CONTOUR_FACE_RENDERS,
     LearningConfig,
     TrainingView,
     _canonical_camera,
     _canonical_map,
+    contour_view_level,
     learn_from_images,
     learn_from_mesh,
 )
@@ -33,6 +35,16 @@ def test_config_from_dict_validates_fields():
     with pytest.raises(InvalidInputError) as err:
         LearningConfig.from_dict({"contour_level": 5})
     assert err.value.field == "learning.contour_level"
+
+
+def test_dense_meshes_get_fewer_contour_views_down_to_level_2():
+    # Level 3 is 642 views, level 2 162: views x faces stay in the budget.
+    assert contour_view_level(3, 5_000) == 3
+    assert 642 * 15_000 <= CONTOUR_FACE_RENDERS < 642 * 16_000
+    assert contour_view_level(3, 16_000) == 2
+    assert contour_view_level(3, 10**7) == 2  # never coarser than training's level 2
+    assert contour_view_level(1, 10**7) == 1  # nor finer than asked
+    assert contour_view_level(4, 1_000) == 4
 
 
 def test_model_views_cluster_training_views(bracket_model):
