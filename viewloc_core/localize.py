@@ -18,6 +18,7 @@ from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
+import trimesh
 from numpy.typing import NDArray
 
 from viewloc_core import feature_kernels, normal_search, sample_evidence, seeding, similarity_fit
@@ -202,9 +203,9 @@ def _surface(model: ObjectModel) -> tuple[SurfaceSamples, NearSymmetries] | None
     faces = model.mesh_faces
 
     def build(m: ObjectModel) -> tuple[SurfaceSamples, NearSymmetries]:
-        samples = surface_samples(np.asarray(m.mesh_vertices_mm, np.float64) - m.origin_offset_mm,
-                                  faces)
-        return samples, near_symmetries(samples, m.symmetry_group())
+        vertices = np.asarray(m.mesh_vertices_mm, np.float64) - m.origin_offset_mm
+        mesh = trimesh.Trimesh(vertices, np.asarray(faces, np.int64), process=False)
+        return surface_samples(vertices, faces), near_symmetries(mesh, m.symmetry_group())
 
     return cached_per_model(_SURFACE_CACHE, model, build)
 
@@ -412,7 +413,7 @@ def _final_detection(
             result, t_view, similarity, pose_centred = _refit_from_other_starts(
                 model, loc, factor, camera, edges, contour, t_view, similarity, pose_centred,
                 result)
-        if shading is not None and (len(loc.candidates) > 1 or len(shading.near.rotations)):
+        if shading is not None and (len(loc.candidates) > 1 or len(shading.near.transforms)):
             result, t_view, similarity, pose_centred = _other_sides(
                 model, loc, factor, camera, edges, contour, shading, t_view, similarity,
                 pose_centred, result)

@@ -10,12 +10,11 @@ wrong, and the small differences (a bump, a dent) show in the shading:
 :func:`viewloc_core.localize` tries them as extra starts and lets contour
 and shading decide.
 
-Found on the part's surface samples (:mod:`viewloc_core.shading`): the
-principal axes of the sample cloud; a half turn about one through the
-centroid is a near-symmetry when it moves the samples by little on average
-onto the surface (nearest-sample distance, relative to the part's size) and
-is not one of the part's exact symmetries (those are equivalent poses, not
-rivals).
+Found by :func:`viewloc_core.symmetry.near_half_turns` with the surface test
+of the exact symmetry detection: a half turn about a principal axis through
+the surface centroid is a near-symmetry when it moves the surface by little
+on average (relative to the part's size), and is not one of the part's exact
+symmetries (those are equivalent poses, not rivals).
 """
 
 from __future__ import annotations
@@ -23,23 +22,19 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import trimesh
 from numpy.typing import NDArray
-from scipy.spatial import cKDTree
 
 from viewloc_core.pose import Pose
-from viewloc_core.shading import SurfaceSamples
-from viewloc_core.symmetry import Symmetries, within_angle_deg
+from viewloc_core.symmetry import Symmetries, near_half_turns
 
 F64 = NDArray[np.float64]
 
-#: A half turn is a near-symmetry when the turned samples lie on average
-#: within this share of the part's extent of the surface, beyond half the
-#: sampling spacing (bench parts: the free-form egg 1.1-1.4 % for its three
-#: axes, the L-bracket 6.6-13 %).
+#: A half turn is a near-symmetry when the turned surface lies on average
+#: within this share of the part's bounding-box diagonal of the surface,
+#: beyond the sampling floor (bench parts: the free-form egg 1.0-1.2 % for
+#: its three axes, the L-bracket 5.4-10 %).
 MAX_MEAN_GAP_SHARE = 0.03
-
-#: A half turn within this angle of an exact symmetry is that symmetry.
-EXACT_TOL_DEG = 10.0
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -48,23 +43,21 @@ class NearSymmetries:
 
     Attributes
     ----------
-    rotations : (K, 3, 3) float64
-        Rotations in the part's frame (K may be 0).
-    centre_mm : (3,) float64
-        The point they turn about (the samples' centroid), part frame, mm.
+    transforms : (K, 4, 4) float64
+        Rigid transforms of the part's frame (K may be 0).
     mean_gap_mm : (K,) float64
-        Mean distance of the turned samples from the surface, mm.
+        Mean distance of the turned surface from the surface, beyond the
+        sampling floor, mm.
     """
 
-    rotations: F64
-    centre_mm: F64
+    transforms: F64
     mean_gap_mm: F64
 
     def twins(self, pose: Pose) -> list[Pose]:
-        """The poses that show the part turned by each near-symmetry.
+        """The poses that show the part moved by each near-symmetry.
 
-        A point ``X`` of the part goes to ``S (X - c) + c`` before ``pose``
-        applies: rotation ``R S``, translation ``t + R (c - S c)``.
+        A point ``X`` of the part goes to ``T X`` before ``pose`` applies:
+        rotation ``R T_R``, translation ``t + R T_t``.
 
         Parameters
         ----------
@@ -74,20 +67,19 @@ class NearSymmetries:
         Returns
         -------
         list of Pose
-            One per rotation, in order.
+            One per transform, in order.
         """
-        c = self.centre_mm
         R, t = pose.R_m2c, pose.t_m2c
-        return [Pose(R @ S, t + R @ (c - S @ c)) for S in self.rotations]
+        return [Pose(R @ T[:3, :3], t + R @ T[:3, 3]) for T in self.transforms]
 
 
-def near_symmetries(samples: SurfaceSamples, exact: Symmetries) -> NearSymmetries:
+def near_symmetries(mesh: trimesh.Trimesh, exact: Symmetries) -> NearSymmetries:
     """The half turns about the principal axes that nearly map the part onto itself.
 
     Parameters
     ----------
-    samples : SurfaceSamples
-        Even samples of the part's surface, part frame, mm.
+    mesh : trimesh.Trimesh
+        The part, mm, in the frame poses refer to.
     exact : Symmetries
         The part's exact symmetry group (excluded).
 
@@ -95,23 +87,5 @@ def near_symmetries(samples: SurfaceSamples, exact: Symmetries) -> NearSymmetrie
     -------
     NearSymmetries
     """
-    pts = np.asarray(samples.points_mm, dtype=np.float64)
-    centre = pts.mean(axis=0)
-    rel = pts - centre
-    _, axes = np.linalg.eigh(rel.T @ rel)
-    tree = cKDTree(pts)
-    rotations, gaps = [], []
-    identity = np.eye(3)
-    for axis in axes.T:
-        S = 2.0 * np.outer(axis, axis) - identity  # half turn about ``axis``
-        if within_angle_deg(identity, S, exact, EXACT_TOL_DEG):
-            continue
-        dist, _ = tree.query(rel @ S.T + centre)
-        gap = float(dist.mean())
-        # Nearest-sample distances of points on the surface itself are about
-        # half the sample spacing: that much is not a difference of shape.
-        if gap - 0.5 * samples.spacing_mm < MAX_MEAN_GAP_SHARE * samples.extent_mm:
-            rotations.append(S)
-            gaps.append(gap)
-    return NearSymmetries(np.asarray(rotations, dtype=np.float64).reshape(-1, 3, 3), centre,
-                          np.asarray(gaps, dtype=np.float64))
+    transforms, gaps = near_half_turns(mesh, exact, max_gap_frac=MAX_MEAN_GAP_SHARE)
+    return NearSymmetries(transforms, gaps)

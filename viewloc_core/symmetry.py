@@ -155,16 +155,25 @@ class _SurfaceTest:
         d, _ = self.tree.query(pts, eps=0.1, distance_upper_bound=cap)
         return np.minimum(d, cap)
 
-    def accepts(self, T: Array) -> bool:
+    def _both_ways(self, T: Array) -> Array:
+        """Distances of the probes moved by ``T`` and by its inverse from the surface."""
         T_inv = np.linalg.inv(T)
+        return np.concatenate([
+            self._distances(self.probe @ T[:3, :3].T + T[:3, 3]),
+            self._distances(self.probe @ T_inv[:3, :3].T + T_inv[:3, 3]),
+        ])
+
+    def mean_gap_mm(self, T: Array) -> float:
+        """Mean distance of the moved probes from the surface beyond what
+        sampling alone leaves, mm."""
+        return float(self._both_ways(T).mean()) - self.base_mean
+
+    def accepts(self, T: Array) -> bool:
         quick = self.probe[: max(50, len(self.probe) // 10)]
         d_quick = self._distances(quick @ T[:3, :3].T + T[:3, 3])
         if d_quick.mean() - self.base_mean > 3.0 * self.tol:
             return False
-        d = np.concatenate([
-            self._distances(self.probe @ T[:3, :3].T + T[:3, 3]),
-            self._distances(self.probe @ T_inv[:3, :3].T + T_inv[:3, 3]),
-        ])
+        d = self._both_ways(T)
         return bool(
             d.mean() - self.base_mean < self.tol
             and np.percentile(d, 99) - self.base_p99 < 3.0 * self.tol
@@ -275,6 +284,55 @@ def detect_symmetries(
                 group = trial
                 break
     return Symmetries(np.stack(group))
+
+
+def near_half_turns(
+    mesh: trimesh.Trimesh, exact: Symmetries, *, max_gap_frac: float = 0.03,
+    exact_tol_deg: float = 10.0, n_points: int = 1000, rng: int = 0,
+) -> tuple[Array, Array]:
+    """Half turns about the principal axes that map a mesh almost onto itself.
+
+    The near-symmetries of :mod:`viewloc_core.near_symmetry`: unlike
+    :func:`detect_symmetries` only the mean distance counts (a bump or a
+    dent may move far), against a looser tolerance, and the part's exact
+    symmetries are left out.
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh
+        The part, mm, in the frame the transforms are wanted in.
+    exact : Symmetries
+        Its exact symmetry group (rotation parts compared).
+    max_gap_frac : float
+        Largest mean distance of the turned surface from the surface beyond
+        the sampling floor, as a fraction of the diameter.
+    exact_tol_deg : float
+        A half turn within this angle of an exact symmetry is that symmetry.
+    n_points : int
+        Surface probes (the reference set is 5x denser).
+    rng : int
+        Seed of the surface sampling.
+
+    Returns
+    -------
+    transforms : (K, 4, 4) float64
+        Rigid transforms (rotations about lines through the surface centroid).
+    mean_gap_mm : (K,) float64
+    """
+    centre = np.asarray(mesh.triangles_center.T @ mesh.area_faces / mesh.area, dtype=np.float64)
+    diameter = float(np.linalg.norm(mesh.bounds[1] - mesh.bounds[0]))
+    test = _SurfaceTest(mesh, n_points, max_gap_frac * diameter, rng)
+    _, _, evecs = _candidate_axes(mesh, centre)
+    turns, gaps = [], []
+    for axis in evecs.T:
+        T = _rotation_about(axis, math.pi, centre)
+        if within_angle_deg(np.eye(3), T[:3, :3], exact, exact_tol_deg):
+            continue
+        gap = test.mean_gap_mm(T)
+        if gap < test.tol:
+            turns.append(T)
+            gaps.append(gap)
+    return (np.asarray(turns, np.float64).reshape(-1, 4, 4), np.asarray(gaps, np.float64))
 
 
 def _with_flip(

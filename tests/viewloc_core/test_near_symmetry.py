@@ -22,27 +22,24 @@ CAM = Camera(600.0, 600.0, 319.5, 239.5, 640, 480)
 NO_SYMMETRY = Symmetries(np.eye(4)[None])
 
 
-def _near(mesh: trimesh.Trimesh, sym: Symmetries = NO_SYMMETRY) -> NearSymmetries:
-    return near_symmetries(surface_samples(mesh.vertices, mesh.faces), sym)
-
-
 def test_an_egg_with_bumps_has_three_half_turns_and_a_bracket_none():
-    egg = _near(blob())
-    assert len(egg.rotations) == 3
-    for S in egg.rotations:
+    egg = near_symmetries(blob(), NO_SYMMETRY)
+    assert len(egg.transforms) == 3
+    for T in egg.transforms:
+        S = T[:3, :3]
         assert rotation_angle_deg(S, np.eye(3)) == pytest.approx(180.0)
         assert np.allclose(S @ S.T, np.eye(3), atol=1e-9) and np.linalg.det(S) > 0
-    # Measured 3.1-4.0 mm on the egg of 129 mm (a bump, a dent), of which
-    # half the 3.6 mm sample spacing is sampling.
-    assert np.all(egg.mean_gap_mm < 5.0)
-    assert len(_near(l_bracket()).rotations) == 0
+        assert np.allclose(T @ T, np.eye(4), atol=1e-9)  # a half turn undoes itself
+    # A bump and a dent: measured 1.5-2.5 mm on the egg of 129 mm.
+    assert np.all(egg.mean_gap_mm < 3.5)
+    assert len(near_symmetries(l_bracket(), NO_SYMMETRY).transforms) == 0
 
 
 def test_exact_symmetries_are_not_near_ones():
     # A box's half turns about its axes are exact: equivalent poses, not rivals.
     box = trimesh.creation.box((60.0, 30.0, 15.0))
-    assert len(_near(box).rotations) == 3
-    assert len(_near(box, detect_symmetries(box)).rotations) == 0
+    assert len(near_symmetries(box, NO_SYMMETRY).transforms) == 3
+    assert len(near_symmetries(box, detect_symmetries(box)).transforms) == 0
 
 
 @settings(max_examples=50, deadline=None)
@@ -53,7 +50,10 @@ def test_a_twin_is_the_pose_applied_after_the_half_turn(seed, numbers):
     axis /= np.linalg.norm(axis)
     S = 2.0 * np.outer(axis, axis) - np.eye(3)
     centre = np.asarray(numbers[:3])
-    near = NearSymmetries(S[None], centre, np.zeros(1))
+    T = np.eye(4)
+    T[:3, :3] = S
+    T[:3, 3] = centre - S @ centre  # the half turn about the line through centre
+    near = NearSymmetries(T[None], np.zeros(1))
     pose = Pose(Rotation.random(random_state=seed).as_matrix(),
                 np.asarray(numbers[3:]) + [0.0, 0.0, 1000.0])
     (twin,) = near.twins(pose)
@@ -78,7 +78,7 @@ def test_a_fit_stuck_at_a_half_turn_is_turned_back_by_its_twin(renderer):
     # and contour and shading both rank it higher.
     mesh = blob()
     samples = surface_samples(mesh.vertices, mesh.faces)
-    near = near_symmetries(samples, NO_SYMMETRY)
+    near = near_symmetries(mesh, NO_SYMMETRY)
     contour = build_contour_model(mesh, subdivided_sphere(3)[0], renderer, 500.0, 512.0,
                                   (160, 160))
     prepared = prepare(mesh)
@@ -91,7 +91,7 @@ def test_a_fit_stuck_at_a_half_turn_is_turned_back_by_its_twin(renderer):
         image = renderer.render(prepared, CAM, truth, lights=lights,
                                 background_rgb=(30, 30, 30)).color
         edges = prepare_edges(image, 2)
-        k = seed % len(near.rotations)
+        k = seed % len(near.transforms)
         stuck = refine_pose(edges, CAM, near.twins(truth)[k], contour)
         back = refine_pose(edges, CAM, near.twins(stuck.pose)[k], contour)
         assert rotation_angle_deg(stuck.pose.R_m2c, truth.R_m2c) > 90.0
