@@ -592,9 +592,9 @@ def localize(
     # refinements decide (bench, 192 images with 2 or 3 locations fitted:
     # right top detections on the paper set 97 -> 98 of 100, hard 63 -> 67
     # of 80; a third location found 1 more on the hard set and 1 more false
-    # positive on each). Confirmed
-    # fits need no spare, which keeps the cost to the doubtful images;
-    # without refinement nothing would overrule the view search's order.
+    # positive on each). Confirmed fits need no spare, which keeps the cost
+    # to the doubtful images; without refinement nothing would overrule the
+    # view search's order.
     surface = _surface(model) if edges is not None else None
     shading = None if surface is None else _Shading(arr, *surface)
     fits = [_final_detection(model, loc, level, factor, camera, edges, contour,

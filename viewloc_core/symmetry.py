@@ -180,6 +180,13 @@ class _SurfaceTest:
         )
 
 
+def _centroid_and_diagonal(mesh: trimesh.Trimesh) -> tuple[Array, float]:
+    """The surface centroid (fixed by every symmetry of the surface; (3,) mm)
+    and the bounding-box diagonal (mm), the size tolerances are relative to."""
+    centre = np.asarray(mesh.triangles_center.T @ mesh.area_faces / mesh.area, dtype=np.float64)
+    return centre, float(np.linalg.norm(mesh.bounds[1] - mesh.bounds[0]))
+
+
 def _candidate_axes(mesh: trimesh.Trimesh, centre: Array) -> tuple[list[Array], Array, Array]:
     """Candidate axes (unit, deduplicated), principal axes and their eigenvalues."""
     # Exact area-weighted second moment of the surface about the centroid
@@ -256,9 +263,7 @@ def detect_symmetries(
         raise InvalidInputError("tol_frac must be in (0, 0.2)", "tol_frac")
     gen = np.random.default_rng(rng)
     seed = int(gen.integers(0, 2**31 - 1))
-    diameter = float(np.linalg.norm(mesh.bounds[1] - mesh.bounds[0]))
-    # The surface centroid is fixed by every symmetry of the surface.
-    centre = np.asarray(mesh.triangles_center.T @ mesh.area_faces / mesh.area, dtype=np.float64)
+    centre, diameter = _centroid_and_diagonal(mesh)
     test = _SurfaceTest(mesh, n_points, tol_frac * diameter, seed)
     axes, evals, evecs = _candidate_axes(mesh, centre)
 
@@ -319,8 +324,7 @@ def near_half_turns(
         Rigid transforms (rotations about lines through the surface centroid).
     mean_gap_mm : (K,) float64
     """
-    centre = np.asarray(mesh.triangles_center.T @ mesh.area_faces / mesh.area, dtype=np.float64)
-    diameter = float(np.linalg.norm(mesh.bounds[1] - mesh.bounds[0]))
+    centre, diameter = _centroid_and_diagonal(mesh)
     test = _SurfaceTest(mesh, n_points, max_gap_frac * diameter, rng)
     _, _, evecs = _candidate_axes(mesh, centre)
     turns, gaps = [], []
