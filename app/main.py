@@ -10,12 +10,14 @@ from fastapi import Depends, FastAPI
 
 from app.deps import require_api_key
 from app.jobs.factory import build_runner
+from app.model_warmer import ModelWarmer
 from app.observability import Metrics, ServiceMiddleware, configure_logging
 from app.openapi_doc import install_openapi
 from app.problems import install_fallback_handler, install_problem_handlers
 from app.routers import jobs, localize, objects, ops
 from app.settings import Settings
 from model_store import ModelStore
+from viewloc_core.localize import prepare as localize_prepare
 from viewloc_core.localize import warm_up as localize_warm_up
 
 log = logging.getLogger("viewloc.app")
@@ -67,6 +69,9 @@ def create_app(
         store = ModelStore(settings.data_dir, cache_size=settings.model_cache_size)
         runner = build_runner(store, settings, tasks)
         runner.start()
+        warmer = ModelWarmer(store, localize_prepare,
+                             settings.model_cache_size if settings.prepare_models else 0)
+        warmer.start()
         app.state.store, app.state.runner = store, runner
         log.info("viewloc serving store %s with %s job runner", store.root,
                  settings.job_backend)
@@ -74,6 +79,7 @@ def create_app(
             yield
         finally:
             app.state.runner = None
+            warmer.stop()
             runner.stop()
 
     application = FastAPI(

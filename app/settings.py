@@ -48,6 +48,11 @@ class Settings(BaseSettings):
         default=5.0, ge=0, description="Time a cancelled job gets before its process is killed."
     )
     model_cache_size: int = Field(default=16, ge=0, description="Learned models kept in memory.")
+    prepare_models: bool = Field(
+        default=True,
+        description="Load and prepare ready models in the background (at start-up and when a "
+        "job has learned one), up to model_cache_size, so that no localization waits for it.",
+    )
     log_level: str = Field(default="INFO", description="Python logging level.")
     log_json: bool = Field(default=True, description="Structured JSON logs on stderr.")
 

@@ -34,7 +34,7 @@ import os
 import signal
 import threading
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -45,6 +45,7 @@ from rq.exceptions import DuplicateJobError, InvalidJobOperation, NoSuchJobError
 from rq.job import Job, JobStatus
 
 from app.jobs.execute import execute_job, watch_parent
+from app.periodic import Periodic
 from app.settings import Settings
 from model_store import JobNotFoundError, JobRecord, ModelStore, new_id
 
@@ -146,32 +147,6 @@ class QueueBridge:
         return actions
 
 
-class _Periodic:
-    """A daemon thread calling ``step`` every ``interval_s`` until stopped."""
-
-    def __init__(self, name: str, interval_s: float, step: Callable[[], None]) -> None:
-        self.interval_s, self.step = interval_s, step
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
-
-    def start(self) -> None:
-        self._thread.start()
-
-    def stop(self, timeout_s: float = 5.0) -> None:
-        self._stop.set()
-        self._thread.join(timeout_s)
-
-    def is_alive(self) -> bool:
-        return self._thread.is_alive()
-
-    def _run(self) -> None:
-        while not self._stop.wait(self.interval_s):
-            try:
-                self.step()
-            except Exception:  # a busy database or a Redis hiccup must not end the loop
-                log.exception("periodic %s failed", self._thread.name)
-
-
 class RedisJobRunner:
     """The API side of the Redis backend: enqueues, cancels, watches for dead workers.
 
@@ -199,7 +174,7 @@ class RedisJobRunner:
         self.stale_after_s = stale_after_s
         self.connection = connect(redis_url)
         self.bridge = QueueBridge(store, self.connection, tasks, queue_name)
-        self._loop: _Periodic | None = None
+        self._loop: Periodic | None = None
         self._redis_ok = False
 
     def _maintain(self) -> None:
@@ -223,7 +198,7 @@ class RedisJobRunner:
         if self._loop is not None:
             return
         self._maintain()
-        self._loop = _Periodic("viewloc-redis-bridge", max(0.5, self.stale_after_s / 3),
+        self._loop = Periodic("viewloc-redis-bridge", max(0.5, self.stale_after_s / 3),
                                self._maintain)
         self._loop.start()
 
@@ -292,7 +267,7 @@ def run_job(job_id: str, tasks: dict[str, str] | None = None) -> str:
     store = ModelStore(data_dir)
     owner = new_id()
     store.heartbeat(owner)
-    beat = _Periodic("viewloc-horse-heartbeat", 2.0, lambda: store.heartbeat(owner))
+    beat = Periodic("viewloc-horse-heartbeat", 2.0, lambda: store.heartbeat(owner))
     beat.start()
     try:
         return execute_job(data_dir, job_id, tasks, owner=owner)
@@ -443,7 +418,7 @@ def run_worker(settings: Settings, *, burst: bool = False, name: str | None = No
             worker.settle_strays()
             bridge.reconcile(stale)
 
-    loop = _Periodic("viewloc-worker-maintenance", 0.25, step)
+    loop = Periodic("viewloc-worker-maintenance", 0.25, step)
     loop.start()
     log.info("viewloc worker %s on %s, store %s", worker.name, _safe_url(settings.redis_url),
              data_dir)
