@@ -21,7 +21,14 @@ import numpy as np
 import trimesh
 from numpy.typing import NDArray
 
-from viewloc_core import feature_kernels, normal_search, sample_evidence, seeding, similarity_fit
+from viewloc_core import (
+    feature_kernels,
+    normal_search,
+    sample_evidence,
+    seeding,
+    shift_search,
+    similarity_fit,
+)
 from viewloc_core import similarity as sim2
 from viewloc_core.align import (
     AlignConfig,
@@ -178,6 +185,7 @@ def warm_up() -> None:
     seeding.warm_up()
     sample_evidence.warm_up()
     normal_search.warm_up()
+    shift_search.warm_up()
 
 
 def prepare(model: ObjectModel) -> None:

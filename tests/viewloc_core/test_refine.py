@@ -12,7 +12,7 @@ from viewloc_core.camera import Camera
 from viewloc_core.contour_model import build_contour_model
 from viewloc_core.errors import InvalidImageError, InvalidInputError
 from viewloc_core.pose import Pose, rotation_angle_deg
-from viewloc_core.refine import EdgePyramid, RefineOptions, prepare_edges, refine_pose
+from viewloc_core.refine import RefineOptions, prepare_edges, refine_pose
 from viewloc_core.render import Renderer, prepare
 from viewloc_core.robust import median
 from viewloc_core.view_sphere import subdivided_sphere
@@ -170,18 +170,6 @@ def test_colour_gradient_takes_the_strongest_channel_per_pixel():
 def test_median_equals_numpy(n):
     values = np.random.default_rng(n).normal(size=n)
     assert median(values) == pytest.approx(float(np.median(values)), abs=1e-15)
-
-
-def test_gradient_planes_match_the_interleaved_gradients():
-    image = np.random.default_rng(5).integers(0, 256, (48, 64, 3), dtype=np.uint8)
-    edges = prepare_edges(image, 3)
-    bare = EdgePyramid(list(edges.gradients), edges.width, edges.height)
-    for level in range(edges.levels):
-        for pyramid in (edges, bare):  # filled by prepare_edges, or on first use
-            gx, gy = pyramid.level_planes(level)
-            assert gx.flags.c_contiguous and gy.flags.c_contiguous
-            np.testing.assert_array_equal(gx, edges.gradients[level][..., 0])
-            np.testing.assert_array_equal(gy, edges.gradients[level][..., 1])
 
 
 def test_dense_contour_views_keep_a_smooth_part_at_its_depth(renderer):
