@@ -44,7 +44,7 @@ from viewloc_core.gradient import image_gradient
 from viewloc_core.normal_search import search_normals
 from viewloc_core.pose import Pose
 from viewloc_core.robust import median, tukey_weights
-from viewloc_core.shift_search import shift_scores
+from viewloc_core.shift_search import shift_grid, shift_scores
 
 Array = NDArray[np.float64]
 
@@ -577,7 +577,7 @@ def _align_shift(
     f = 2.0**level
     uv_l = (proj.uv + 0.5) / f - 0.5
     rad = max(1, int(math.ceil(opts.shift_search_px / f)))
-    shifts, dist2 = _shift_grid(rad)
+    shifts, dist2 = shift_grid(rad)
     score = shift_scores(edges.gradients[level], uv_l, proj.n2, rad, 4.0 * opts.min_gradient)
     # Prefer the smaller shift among (near) ties.
     best = int(np.argmax(score - 1e-6 * dist2))
@@ -588,16 +588,6 @@ def _align_shift(
     cam = projector.camera
     delta_t = np.array([shift_px[0] * z / cam.fx, shift_px[1] * z / cam.fy, 0.0])
     return Pose(pose.R_m2c, pose.t_m2c + delta_t)
-
-
-@functools.lru_cache(maxsize=16)
-def _shift_grid(rad: int) -> tuple[NDArray[np.float32], Array]:
-    """All integer 2D shifts within ±rad (row-major, the zero shift in the
-    middle) and their squared lengths."""
-    grid = np.arange(-rad, rad + 1, dtype=np.float32)
-    sx, sy = np.meshgrid(grid, grid)
-    shifts = np.column_stack([sx.ravel(), sy.ravel()])
-    return shifts, (shifts.astype(np.float64) ** 2).sum(axis=1)
 
 
 def _final(

@@ -14,6 +14,7 @@ point's neighbourhood and interpolated after. That is several times less work.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -90,6 +91,24 @@ def shift_scores(
                             + bottom[c + 1] * w11)
                 scores[base + c] += min(value, cap32)
     return scores
+
+
+@functools.lru_cache(maxsize=16)
+def shift_grid(rad: int) -> tuple[F32, F64]:
+    """The shifts :func:`shift_scores` scores, in its order, and their squared lengths.
+
+    Returns
+    -------
+    shifts : ((2 rad + 1)², 2) float32
+        Integer shifts (dx, dy), row-major with dx fastest, the zero shift
+        in the middle.
+    dist2 : ((2 rad + 1)²,) float64
+        Their squared lengths, pixels².
+    """
+    grid = np.arange(-rad, rad + 1, dtype=np.float32)
+    sx, sy = np.meshgrid(grid, grid)
+    shifts = np.column_stack([sx.ravel(), sy.ravel()])
+    return shifts, (shifts.astype(np.float64) ** 2).sum(axis=1)
 
 
 def warm_up() -> None:

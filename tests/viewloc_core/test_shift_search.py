@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from viewloc_core.shift_search import shift_scores
+from viewloc_core.shift_search import shift_grid, shift_scores
 
 
 def _array_form(grad, uv, normal, rad, cap):
@@ -62,3 +62,20 @@ def test_outside_the_image_reads_zero() -> None:
     grad = np.ones((10, 10, 2), np.float32)
     far = np.array([[-30.0, -30.0]])
     assert shift_scores(grad, far, np.array([[1.0, 0.0]]), 3, 10.0).max() == 0.0
+
+
+@pytest.mark.parametrize("rad", [1, 3, 8])
+def test_the_grid_lists_the_shifts_in_the_kernels_order(rad: int) -> None:
+    # One bright pixel under a single contour point: the shift that moves
+    # the point onto it scores highest, and the grid names that shift.
+    shifts, dist2 = shift_grid(rad)
+    side = 2 * rad + 1
+    assert shifts.shape == (side * side, 2)
+    assert tuple(shifts[len(shifts) // 2]) == (0.0, 0.0)
+    np.testing.assert_array_equal(dist2, (shifts.astype(np.float64) ** 2).sum(axis=1))
+    grad = np.zeros((40, 40, 2), np.float32)
+    for target in [(rad, -rad), (-rad, 0), (1 - rad, rad)]:
+        grad[:] = 0.0
+        grad[20 + target[1], 20 + target[0], 0] = 1.0
+        scores = shift_scores(grad, np.array([[20.0, 20.0]]), np.array([[1.0, 0.0]]), rad, 10.0)
+        assert tuple(shifts[int(np.argmax(scores))]) == target
