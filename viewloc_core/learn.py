@@ -46,6 +46,7 @@ from viewloc_core.features import (
     orientation_bin,
 )
 from viewloc_core.model import ModelView, ObjectModel, TrainingViews
+from viewloc_core.part_colour import ColourAccumulator
 from viewloc_core.symmetry import Symmetries
 from viewloc_core.view_sphere import direction_from_angles, view_directions, view_rotation
 
@@ -640,6 +641,10 @@ def learn_from_mesh(
 
     with Renderer() as renderer:
         prepared = prepare(centred)
+        # Only a mesh with colours of its own says what colour the part is.
+        colours = (ColourAccumulator(config.seed)
+                   if prepared.colours_linear is not None or prepared.texture is not None
+                   else None)
         level_counts: dict[int, int] = {}
         for i, view in enumerate(directions):
             if view.level > config.min_level and view.level not in level_counts:
@@ -657,6 +662,8 @@ def learn_from_mesh(
                 lights=random_lights(gen),
             )
             sample = _sample_from_image(result.color, result.mask, c, config, gen)
+            if colours is not None:
+                colours.add(result.color, result.mask)
             clusterer.add(sample, view.direction)
             rotations.append(R)
             samples.append(sample)
@@ -676,7 +683,9 @@ def learn_from_mesh(
     model = _finish(clusterer, rotations, samples, angles, "mesh", diameter, d0, f, size,
                     centre, config, mesh)
     sym = detect_symmetries(mesh, rng=0) if symmetries is None else symmetries
-    return with_symmetries(replace(model, contour=contour.to_arrays()), sym)
+    histogram = None if colours is None else colours.histogram()
+    return with_symmetries(replace(model, contour=contour.to_arrays(),
+                                   colour_histogram=histogram), sym)
 
 
 def with_symmetries(model: ObjectModel, sym: Symmetries) -> ObjectModel:
@@ -750,6 +759,7 @@ def learn_from_images(
     d0, f, size = _canonical_camera(config, diameter_mm)
     c = (size - 1) / 2.0
     clusterer = _Clusterer(config, c)
+    colours = ColourAccumulator(config.seed)
     rotations, samples, angles = [], [], []
     for i, (image, view) in enumerate(zip(images, views, strict=True)):
         _check_should_stop(should_stop)
@@ -771,6 +781,8 @@ def learn_from_images(
             if m.shape[:2] != img.shape[:2]:
                 raise InvalidInputError("mask size differs from its image", f"masks[{i}]")
             mask_w = cv2.remap((m > 0).astype(np.uint8), map_x, map_y, cv2.INTER_NEAREST) > 0
+            # Only masked photos say which pixels are the part's colours.
+            colours.add(warped, mask_w)
         sample = _sample_from_image(warped, mask_w, c, config, gen)
         direction = direction_from_angles(view.azimuth_deg, view.polar_deg)
         clusterer.add(sample, direction)
@@ -779,5 +791,6 @@ def learn_from_images(
         angles.append((view.azimuth_deg, view.polar_deg))
     if progress is not None:
         progress("finishing", 1.0)
-    return _finish(clusterer, rotations, samples, angles, "images", diameter_mm, d0, f, size,
-                   np.zeros(3), config, None)
+    model = _finish(clusterer, rotations, samples, angles, "images", diameter_mm, d0, f, size,
+                    np.zeros(3), config, None)
+    return replace(model, colour_histogram=colours.histogram())

@@ -27,6 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from viewloc_core.errors import ModelFormatError
+from viewloc_core.part_colour import N_BINS
 from viewloc_core.symmetry import Symmetries
 
 SCHEMA_VERSION = 1
@@ -145,6 +146,10 @@ class ObjectModel:
     symmetry_axis : (6,) float64 or None
         Continuous rotational symmetry: unit axis (3,) then a point on it
         (3,), mm, user's object frame; None when there is none.
+    colour_histogram : (part_colour.N_BINS,) float32 or None
+        The part's chromaticity histogram over its training views
+        (:mod:`viewloc_core.part_colour`); None when the part showed no
+        colours of its own (a mesh without colours, grey training images).
     default_min_score : float
         Detections below this score are not reported unless asked. The score
         is the share of the contour that image edges confirm; in clutter 6D
@@ -170,6 +175,7 @@ class ObjectModel:
     default_min_score: float = 0.6
     config: dict[str, Any] = field(default_factory=dict)
     symmetry_axis: F64 | None = None
+    colour_histogram: F32 | None = None
 
     def symmetry_group(self) -> Symmetries:
         """The part's symmetries as :class:`viewloc_core.symmetry.Symmetries`."""
@@ -228,6 +234,8 @@ def model_to_arrays(model: ObjectModel) -> tuple[dict[str, NDArray[Any]], dict[s
     arrays["symmetries"] = model.symmetries
     if model.symmetry_axis is not None:
         arrays["symmetry_axis"] = np.asarray(model.symmetry_axis, np.float64)
+    if model.colour_histogram is not None:
+        arrays["colour_histogram"] = np.asarray(model.colour_histogram, np.float32)
     if model.mesh_vertices_mm is not None and model.mesh_faces is not None:
         arrays["mesh_vertices_mm"] = model.mesh_vertices_mm
         arrays["mesh_faces"] = model.mesh_faces
@@ -260,6 +268,16 @@ def model_to_arrays(model: ObjectModel) -> tuple[dict[str, NDArray[Any]], dict[s
 
 def _split(flat: NDArray[Any], offsets: NDArray[np.int64]) -> list[NDArray[Any]]:
     return [flat[offsets[i]: offsets[i + 1]] for i in range(len(offsets) - 1)]
+
+
+def _colour_histogram(arrays: dict[str, NDArray[Any]]) -> F32 | None:
+    """The stored colour histogram, checked; None when the model has none."""
+    if "colour_histogram" not in arrays:
+        return None
+    hist = np.asarray(arrays["colour_histogram"], np.float32)
+    if hist.shape != (N_BINS,) or not np.all(np.isfinite(hist)):
+        raise ValueError(f"colour_histogram must be {N_BINS} finite numbers")
+    return hist
 
 
 def model_from_arrays(arrays: dict[str, NDArray[Any]], meta: dict[str, Any]) -> ObjectModel:
@@ -318,6 +336,7 @@ def model_from_arrays(arrays: dict[str, NDArray[Any]], meta: dict[str, Any]) -> 
             symmetries=np.asarray(arrays["symmetries"], np.float64),
             symmetry_axis=(np.asarray(arrays["symmetry_axis"], np.float64).reshape(6)
                            if "symmetry_axis" in arrays else None),
+            colour_histogram=_colour_histogram(arrays),
             default_min_score=float(meta["default_min_score"]),
             config=dict(meta.get("config", {})),
         )

@@ -145,7 +145,7 @@ def intensity_at(image: NDArray[np.generic], uv: NDArray[np.floating]) -> F64:
     return np.nan_to_num(values)
 
 
-def _visible(samples: SurfaceSamples, camera: Camera, pose: Pose) -> tuple[F64, F64]:
+def visible_samples(samples: SurfaceSamples, camera: Camera, pose: Pose) -> tuple[F64, F64]:
     """Image positions (M, 2) and camera-frame normals (M, 3) of the samples
     the camera sees at ``pose``, facing it and in front of anything else."""
     pts_cam = samples.points_mm @ pose.R_m2c.T + pose.t_m2c
@@ -208,7 +208,7 @@ def shading_agreement(image: NDArray[np.generic], camera: Camera, pose: Pose,
         fewer than :data:`MIN_VISIBLE` samples are seen or the part looks
         uniform (nothing to explain).
     """
-    uv, normals = _visible(samples, camera, pose)
+    uv, normals = visible_samples(samples, camera, pose)
     if len(uv) < MIN_VISIBLE:
         return None
     intensity = intensity_at(image, uv)

@@ -15,10 +15,10 @@ from viewloc_core.pose import Pose
 from viewloc_core.render import Light, Renderer, prepare
 from viewloc_core.shading import (
     MIN_VISIBLE,
-    _visible,
     intensity_at,
     shading_agreement,
     surface_samples,
+    visible_samples,
 )
 
 CAM = Camera(600.0, 600.0, 319.5, 239.5, 640, 480)
@@ -115,13 +115,14 @@ def test_a_box_shows_only_the_faces_turned_to_the_camera():
     box = trimesh.creation.box((80.0, 60.0, 40.0))
     samples = surface_samples(box.vertices, box.faces, count=3000)
     # Face-on: only the face towards the camera (its normal -z in the camera).
-    uv, normals = _visible(samples, CAM, Pose(np.diag([1.0, -1.0, -1.0]), np.array([0, 0, 400.0])))
+    facing = Pose(np.diag([1.0, -1.0, -1.0]), np.array([0, 0, 400.0]))
+    uv, normals = visible_samples(samples, CAM, facing)
     assert len(uv) >= MIN_VISIBLE
     assert np.allclose(normals, [0.0, 0.0, -1.0], atol=1e-6)
     # Corner-on: three faces, each with the normal of a box face (creases
     # are not smoothed), none facing away.
     R = Rotation.from_euler("xyz", [35.0, 40.0, 0.0], degrees=True).as_matrix()
-    uv, normals = _visible(samples, CAM, Pose(R, np.array([0, 0, 400.0])))
+    uv, normals = visible_samples(samples, CAM, Pose(R, np.array([0, 0, 400.0])))
     faces = np.unique(np.round(normals @ R, 6), axis=0)
     assert len(faces) == 3
     assert np.all(normals[:, 2] < 0)
@@ -140,7 +141,7 @@ def test_a_nearer_part_hides_what_is_behind_it():
     towards = (samples.normals @ facing_camera.R_m2c.T)[:, 2] < -0.9
     near_front = int(np.sum(np.isclose(depth, 499.0) & towards))
     far_front = int(np.sum(np.isclose(depth, 599.0) & towards))
-    uv, normals = _visible(samples, CAM, facing_camera)
+    uv, normals = visible_samples(samples, CAM, facing_camera)
     assert far_front > 300
     # A depth-buffer cell holds a few samples; one with no near sample in it
     # lets a far one through, rarely.

@@ -1,0 +1,184 @@
+"""The part's colour: histogram, back-projection, proposals, centroid, agreement;
+learning keeps it only for coloured parts; localization uses it to pick the
+part among look-alikes of other colours."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import trimesh
+
+from tests.viewloc_core.conftest import l_bracket
+from viewloc_core import part_colour as pc
+from viewloc_core.camera import Camera
+from viewloc_core.errors import ModelFormatError
+from viewloc_core.learn import LearningConfig, learn_from_mesh
+from viewloc_core.localize import LocalizeOptions, localize
+from viewloc_core.model import model_from_arrays, model_to_arrays
+from viewloc_core.pose import Pose
+from viewloc_core.render import Light, prepare
+
+ORANGE = (230, 110, 20)
+BLUE = (30, 70, 200)
+
+
+def _scene_with_patch(colour: tuple[int, int, int], xy: tuple[int, int], half: int,
+                      seed: int = 0) -> np.ndarray:
+    """A 300x400 scene of grey-ish noise with a square patch of ``colour``."""
+    gen = np.random.default_rng(seed)
+    img = gen.integers(60, 200, (300, 400, 1)).repeat(3, axis=2).astype(np.int32)
+    img += gen.integers(-10, 10, img.shape)
+    x, y = xy
+    img[y - half:y + half + 1, x - half:x + half + 1] = colour
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+def _histogram_of(colour: tuple[int, int, int]) -> np.ndarray:
+    acc = pc.ColourAccumulator(seed=0)
+    view = np.zeros((64, 64, 3), np.uint8)
+    mask = np.zeros((64, 64), np.uint8)
+    for shade in (0.6, 0.8, 1.0):  # lit and shaded faces: same chromaticity
+        view[:] = np.clip(np.array(colour) * shade, 0, 255).astype(np.uint8)
+        mask[8:56, 8:56] = 1
+        acc.add(view, mask)
+    hist = acc.histogram()
+    assert hist is not None
+    return hist
+
+
+def test_the_histogram_holds_the_parts_chromaticity_whatever_its_brightness() -> None:
+    hist = _histogram_of(ORANGE)
+    assert hist.shape == (pc.N_BINS,)
+    assert hist.sum() == pytest.approx(1.0, abs=1e-5)
+    orange_bin = pc.colour_bins(np.array([ORANGE], np.uint8))[0]
+    dimmer_bin = pc.colour_bins((np.array([ORANGE]) * 0.5).astype(np.uint8))[0]
+    blue_bin = pc.colour_bins(np.array([BLUE], np.uint8))[0]
+    assert orange_bin == dimmer_bin
+    assert hist[orange_bin] > 20 * hist[blue_bin]
+
+
+def test_no_histogram_from_grey_images_or_too_few_pixels() -> None:
+    acc = pc.ColourAccumulator()
+    acc.add(np.full((32, 32), 128, np.uint8), np.ones((32, 32)))
+    assert acc.histogram() is None
+    acc.add(np.full((32, 32, 3), 128, np.uint8), np.zeros((32, 32)))
+    assert acc.histogram() is None
+    with pytest.raises(Exception, match="mask size"):
+        acc.add(np.zeros((32, 32, 3), np.uint8), np.ones((16, 16)))
+
+
+def test_back_projection_is_positive_on_the_part_and_negative_around_it() -> None:
+    hist = _histogram_of(ORANGE)
+    img = _scene_with_patch(ORANGE, (250, 120), 12)
+    ratio = pc.log_ratio_map(img, hist)
+    assert ratio is not None and ratio.shape == img.shape[:2]
+    assert ratio[120, 250] > 1.0
+    assert np.median(ratio[:, :150]) < 0.0
+    assert pc.log_ratio_map(img[..., 0], hist) is None
+    # A grey image stored as RGB carries no colour either.
+    assert pc.log_ratio_map(img[..., :1].repeat(3, axis=2), hist) is None
+    assert pc.log_ratio_map(img.astype(np.uint16) * 257, hist) == pytest.approx(ratio)
+
+
+def test_the_best_window_is_the_part_with_about_its_size() -> None:
+    hist = _histogram_of(ORANGE)
+    img = _scene_with_patch(ORANGE, (250, 120), 16)
+    img[200:211, 50:61] = ORANGE  # a smaller patch of the same colour
+    ratio = pc.log_ratio_map(img, hist)
+    assert ratio is not None
+    props = pc.propose(ratio, np.geomspace(2.0, 40.0, 16), 3)
+    assert 1 <= len(props) <= 3
+    best = props[0]
+    assert abs(best.x - 250) <= 3 and abs(best.y - 120) <= 3
+    assert 8.0 <= best.half_size_px <= 24.0
+    assert any(abs(p.x - 55) <= 4 and abs(p.y - 205) <= 4 for p in props[1:])
+    strengths = [p.strength for p in props]
+    assert strengths == sorted(strengths, reverse=True)
+
+
+def test_the_centroid_moves_to_the_middle_of_the_parts_colours() -> None:
+    hist = _histogram_of(ORANGE)
+    img = _scene_with_patch(ORANGE, (200, 150), 20)
+    ratio = pc.log_ratio_map(img, hist)
+    assert ratio is not None
+    x0, y0 = 193.0, 144.0
+    x, y = pc.centroid(ratio, x0, y0, 22.0)
+    assert np.hypot(x - 200, y - 150) < 0.5 * np.hypot(x0 - 200, y0 - 150)
+    assert abs(x - 200) < 2.0 and abs(y - 150) < 2.0
+    # Nothing part-like around: the start is kept.
+    assert pc.centroid(np.full((50, 50), -1.0, np.float32), 10.0, 20.0, 5.0) == (10.0, 20.0)
+
+
+def test_agreement_is_the_mean_posterior_under_the_points() -> None:
+    post = np.zeros((10, 10), np.float32)
+    post[:, 5:] = 1.0
+    assert pc.agreement(post, np.array([[6.0, 2.0], [7.0, 3.0]])) == pytest.approx(1.0)
+    assert pc.agreement(post, np.array([[1.0, 2.0], [7.0, 3.0], [50.0, 3.0]])) == (
+        pytest.approx(0.5))
+    assert pc.agreement(post, np.array([[-5.0, 2.0]])) is None
+    assert np.all((pc.posterior(np.array([-2.0, 0.0, 3.0], np.float32)) > 0)
+                  & (pc.posterior(np.array([-2.0, 0.0, 3.0], np.float32)) < 1))
+
+
+def _coloured_bracket(rgb: tuple[int, int, int]) -> trimesh.Trimesh:
+    mesh = l_bracket()
+    mesh.visual.face_colors = [*rgb, 255]
+    return mesh
+
+
+@pytest.fixture(scope="module")
+def orange_model():
+    return learn_from_mesh(_coloured_bracket(ORANGE),
+                           LearningConfig(max_level=1, min_level=1, contour_level=1))
+
+
+def test_learning_keeps_the_colours_of_a_coloured_mesh_only(orange_model, bracket_model):
+    assert bracket_model.colour_histogram is None
+    hist = orange_model.colour_histogram
+    assert hist is not None
+    assert hist[pc.colour_bins(np.array([ORANGE], np.uint8))[0]] > 0.05
+    arrays, meta = model_to_arrays(orange_model)
+    back = model_from_arrays(arrays, meta)
+    assert back.colour_histogram is not None
+    assert np.array_equal(back.colour_histogram, hist)
+    arrays["colour_histogram"] = hist[:10]
+    with pytest.raises(ModelFormatError):
+        model_from_arrays(arrays, meta)
+
+
+def test_the_part_is_told_from_a_look_alike_of_another_colour(orange_model, renderer):
+    """An orange and a blue bracket of the same shape: the orange part's
+    model reports the orange one, and its pose. Without its colours the
+    same model reports the blue one (its outline is seen more clearly), so
+    the colour decides."""
+    camera = Camera(600.0, 600.0, 319.5, 239.5, 640, 480)
+    R = trimesh.transformations.euler_matrix(0.5, -0.4, 0.9)[:3, :3]
+    R_blue = trimesh.transformations.euler_matrix(-0.6, 0.5, 2.4)[:3, :3]
+    orange_pose = Pose(R_blue, np.array([-100.0, -20.0, 500.0]))
+    blue_pose = Pose(R, np.array([90.0, 30.0, 560.0]))
+    lights = [Light("directional", direction_cam=(0.6, 0.5, 1.0), intensity=3.0),
+              Light("ambient", intensity=0.3)]
+    image = renderer.render_scene(
+        [(prepare(_coloured_bracket(ORANGE)), orange_pose),
+         (prepare(_coloured_bracket(BLUE)), blue_pose)],
+        camera, lights=lights, background_rgb=(90, 90, 90)).color
+    dets = localize(orange_model, image, camera).detections
+    assert dets
+    t = dets[0].pose.t_m2c
+    assert np.linalg.norm(t - orange_pose.t_m2c) < 15.0, t
+    without_colour = localize(replace(orange_model, colour_histogram=None), image,
+                              camera).detections
+    assert without_colour
+    assert np.linalg.norm(without_colour[0].pose.t_m2c - blue_pose.t_m2c) < 15.0
+    # The scene from a monochrome camera, stored as RGB: the colour cue is
+    # off, and the answer is that of the model without colours (the colour
+    # gate does not drop fits for want of colour).
+    grey = np.repeat(image.mean(axis=2, keepdims=True), 3, axis=2).astype(np.uint8)
+    anything = LocalizeOptions(min_score=0.0)
+    with_hist = localize(orange_model, grey, camera, anything).detections
+    without_hist = localize(replace(orange_model, colour_histogram=None), grey, camera,
+                            anything).detections
+    assert with_hist and [d.pose.t_m2c.tolist() for d in with_hist] == [
+        d.pose.t_m2c.tolist() for d in without_hist]
