@@ -1,5 +1,7 @@
 """Localization: what a detection reports about where the object is."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -11,7 +13,9 @@ from viewloc_core.camera import Camera
 from viewloc_core.detection import Detection, Similarity2D
 from viewloc_core.learn import LearningConfig, learn_from_mesh
 from viewloc_core.localize import (
+    COLOUR_WEIGHT,
     GOOD_FIT_FRACTION,
+    MIN_COLOUR_AGREEMENT,
     SPARE_MIN_CHANCE_CORRECTED,
     LocalizeOptions,
     _convincing,
@@ -77,6 +81,25 @@ def test_confirmed_fits_rank_first_then_refined_by_chance_then_the_view_search_o
     assert scores == [0.95, 0.88, 0.66, 0.66, 0.62, 0.55]
     assert sorted(scores, reverse=True) == scores
     assert GOOD_FIT_FRACTION <= 0.88
+
+
+def test_with_a_colour_cue_fits_rank_by_contour_plus_colour_and_off_colour_fits_drop() -> None:
+    # A wrong place confirms its contour as well as the right one (real
+    # photos in clutter); the colour under the fit decides, and a fit on
+    # colours that are not the part's is not reported at all.
+    fits = [
+        replace(_fit(0.93, True, 0, chance_corrected=0.9), colour_agreement=0.40),
+        replace(_fit(0.80, True, 1, chance_corrected=0.6), colour_agreement=0.85),
+        replace(_fit(0.97, True, 2, chance_corrected=0.95),
+                colour_agreement=MIN_COLOUR_AGREEMENT - 0.01),
+        replace(_fit(0.70, False, 3), colour_agreement=0.9),
+        _fit(0.99, True, 4, chance_corrected=0.99),  # no colour measured
+    ]
+    ranked = _ranked(fits, by_colour=True)
+    assert [d.model_view for d in ranked] == [1, 0, 3]
+    assert COLOUR_WEIGHT > 0
+    # Without the cue the colour is ignored.
+    assert [d.model_view for d in _ranked(fits)][:2] == [4, 2]
 
 
 def test_a_spare_location_competes_only_with_a_convincing_refinement() -> None:
