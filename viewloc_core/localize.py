@@ -146,7 +146,8 @@ DISTINCT_VIEW_DEG = 20.0
 
 
 #: Image locations the part's colour proposes (:mod:`viewloc_core.part_colour`;
-#: models that know their part's colours, colour scenes), searched and
+#: models that know their part's colours, colour scenes, refinement on: only
+#: a fit says whether the part's colours cover its surface), searched and
 #: fitted beside the alignment's.
 COLOUR_LOCATIONS = 3
 
@@ -377,6 +378,11 @@ class _Shading:
         return rank
 
 
+def _train_diameter_px(model: ObjectModel) -> float:
+    """The part's diameter in the training views, pixels (image scale 1)."""
+    return model.f_train_px * model.diameter_mm / model.d0_mm
+
+
 @dataclass(frozen=True, slots=True, eq=False)
 class _ColourScene:
     """The part's colour in the scene (:mod:`viewloc_core.part_colour`), on
@@ -411,7 +417,7 @@ class _ColourScene:
     def seeds(self, model: ObjectModel, config: AlignConfig) -> list[NDArray[np.float64]]:
         """Training-view frame -> level similarities to search at each
         location the colour proposes, (K, 4) per location, best first."""
-        train_diameter_px = model.f_train_px * model.diameter_mm / model.d0_mm
+        train_diameter_px = _train_diameter_px(model)
         halves = COLOUR_WINDOW_SHARE * train_diameter_px * np.geomspace(
             config.min_scale, config.max_scale, COLOUR_WINDOW_SIZES)
         out = []
@@ -451,7 +457,7 @@ def _colour_locations(
         if not candidates:
             continue
         best = candidates[0]
-        reach = 0.25 * best.sim[3] * model.f_train_px * model.diameter_mm / model.d0_mm
+        reach = 0.25 * best.sim[3] * _train_diameter_px(model)
         if any(np.hypot(*(best.sim[:2] - loc.candidates[0].sim[:2])) < reach
                for loc in taken + out):
             continue
