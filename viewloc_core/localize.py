@@ -163,6 +163,13 @@ COLOUR_WINDOW_SIZES = 16
 COLOUR_SEED_ANGLES_DEG = tuple(range(0, 360, 15))
 COLOUR_SEED_SCALES = (0.8, 1.0, 1.25)
 
+#: The colour says the part's centre to about 0.1 of its diameter, more
+#: than the view search's spread map tolerates (2 px): its seeds are also
+#: screened on a 3x3 grid of offsets this share of the diameter apart, and
+#: the best ``COLOUR_KEPT_SEEDS`` of them get the full angle and scale grid.
+COLOUR_OFFSET_SHARE = 0.1
+COLOUR_KEPT_SEEDS = 24
+
 #: Weight of the colour agreement (mean P(part | colour) under the fit's
 #: visible surface, in [0, 1]) beside the share of the contour confirmed
 #: when fits of different locations compete: on real photos in clutter, fits
@@ -453,7 +460,11 @@ def _colour_locations(
     tr = model.training
     out: list[_Located] = []
     for seeds in colour.seeds(model, config):
-        candidates = search_views(feats, templates, seeds, chance, VIEW_CANDIDATES)
+        step_px = COLOUR_OFFSET_SHARE * float(np.median(seeds[:, 3])) * _train_diameter_px(model)
+        offsets = step_px * np.array([(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1)],
+                                     np.float64)
+        candidates = search_views(feats, templates, seeds, chance, VIEW_CANDIDATES,
+                                  offsets, COLOUR_KEPT_SEEDS)
         if not candidates:
             continue
         best = candidates[0]

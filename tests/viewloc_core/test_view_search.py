@@ -163,3 +163,24 @@ def test_best_member_is_the_member_of_highest_coverage(renderer, bracket_mesh, b
         t_best, sim_best = best_member(model, model_view, sim, feats)
         assert t_best == members[int(np.argmax(covs))]
         np.testing.assert_array_equal(sim_best, sim2.compose(sim, tr.sim_to_model[t_best]))
+
+
+def test_offsets_find_a_view_whose_seed_is_off_by_more_than_the_spread(
+        renderer, bracket_mesh, bracket_model):
+    """A seed 9 px off (beyond the spread map's 2 px and the fit's reach)
+    is found on a grid of screened offsets, and only the best seeds are
+    kept for the full grid."""
+    model = bracket_model
+    templates = view_templates(model)
+    errors = {"plain": [], "offsets": []}
+    for t_view, angle in ((3, 30.0), (17, -100.0), (40, 60.0)):
+        image, sim_true, _ = _scene(renderer, bracket_mesh, model, t_view, angle, clutter=3)
+        feats = extract_features(image)
+        start = sim_true + np.array([7.0, -6.0, 0.0, 0.0])
+        offsets = 7.0 * np.array([(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1)], float)
+        for kind, kwargs in (("plain", {}), ("offsets", {"offsets_px": offsets,
+                                                          "kept_seeds": 2})):
+            found = search_views(feats, templates, start[None], chance_rates(feats), **kwargs)
+            errors[kind].append(np.hypot(*(found[0].sim[:2] - sim_true[:2])) if found else 1e9)
+    assert max(errors["offsets"]) < 2.0
+    assert max(errors["plain"]) > 4.0
