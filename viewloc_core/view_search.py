@@ -265,17 +265,16 @@ def best_member(
 
 def _distinct_seeds(seeds: F64) -> F64:
     """Drop seeds the coarse grid of an earlier seed already covers."""
-    kept: list[F64] = []
-    for s in seeds:
-        covered = any(
-            np.hypot(s[0] - k[0], s[1] - k[1]) < 3.0
-            and abs(float(sim2.wrap_angle(s[2] - k[2]))) < np.radians(7.5)
-            and abs(np.log(s[3] / k[3])) < 0.07
-            for k in kept
-        )
-        if not covered:
-            kept.append(s)
-    return np.array(kept)
+    dx = seeds[:, None, :2] - seeds[None, :, :2]
+    covers = ((np.hypot(dx[..., 0], dx[..., 1]) < 3.0)
+              & (np.abs(sim2.wrap_angle(seeds[:, None, 2] - seeds[None, :, 2]))
+                 < np.radians(7.5))
+              & (np.abs(np.log(seeds[:, None, 3] / seeds[None, :, 3])) < 0.07))
+    kept: list[int] = []
+    for i in range(len(seeds)):
+        if not covers[i, kept].any():
+            kept.append(i)
+    return seeds[kept]
 
 
 def _grid_sims(seeds: F64, angles_rad: NDArray[np.float64] | tuple[float, ...],
@@ -290,10 +289,16 @@ def _grid_sims(seeds: F64, angles_rad: NDArray[np.float64] | tuple[float, ...],
 
 
 def _best_distinct(views: NDArray[np.int64], llr: F64, count: int) -> NDArray[np.int64]:
-    """Indices of the best-scoring entry of each of the ``count`` best views."""
-    order = np.argsort(-llr)
-    _, first = np.unique(views[order], return_index=True)
-    return np.asarray(order[np.sort(first)[:count]], np.int64)
+    """Indices of the best-scoring entry of each of the ``count`` best views,
+    best first (the first such entry where a view's best is tied)."""
+    # A per-view maximum, not a sort of all entries: the screen scores up
+    # to a hundred thousand (view, similarity) pairs.
+    best = np.full(int(views.max()) + 1, -np.inf)
+    np.maximum.at(best, views, llr)
+    at_best = np.flatnonzero(llr == best[views])
+    _, first = np.unique(views[at_best], return_index=True)
+    entries = at_best[first]
+    return np.asarray(entries[np.argsort(-llr[entries], kind="stable")[:count]], np.int64)
 
 
 def _shifted(seeds: F64, offsets_px: F64) -> F64:
