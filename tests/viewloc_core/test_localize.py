@@ -16,6 +16,7 @@ from viewloc_core.localize import (
     COLOUR_WEIGHT,
     GOOD_FIT_FRACTION,
     MIN_COLOUR_AGREEMENT,
+    MIN_COLOUR_RANK,
     SPARE_MIN_CHANCE_CORRECTED,
     LocalizeOptions,
     _convincing,
@@ -88,16 +89,19 @@ def test_with_a_colour_cue_fits_rank_by_contour_plus_colour_and_off_colour_fits_
     # photos in clutter); the colour under the fit decides, and a fit on
     # colours that are not the part's is not reported at all.
     fits = [
-        replace(_fit(0.93, True, 0, chance_corrected=0.9), colour_agreement=0.40),
+        replace(_fit(0.93, True, 0, chance_corrected=0.9), colour_agreement=0.50),
         replace(_fit(0.80, True, 1, chance_corrected=0.6), colour_agreement=0.85),
         replace(_fit(0.97, True, 2, chance_corrected=0.95),
                 colour_agreement=MIN_COLOUR_AGREEMENT - 0.01),
         replace(_fit(0.70, False, 3), colour_agreement=0.9),
         _fit(0.99, True, 4, chance_corrected=0.99),  # no colour measured
+        # Colour enough on its own, but with too little contour confirmed.
+        replace(_fit(0.60, True, 5, chance_corrected=0.5), colour_agreement=0.7),
     ]
     ranked = _ranked(fits, by_colour=True)
     assert [d.model_view for d in ranked] == [1, 0, 3]
     assert COLOUR_WEIGHT > 0
+    assert 0.60 + COLOUR_WEIGHT * 0.7 < MIN_COLOUR_RANK <= 0.93 + COLOUR_WEIGHT * 0.5
     # Without the cue the colour is ignored.
     assert [d.model_view for d in _ranked(fits)][:2] == [4, 2]
 
