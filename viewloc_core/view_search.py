@@ -47,13 +47,6 @@ COARSE_SCALES = (0.93, 1.0, 1.07)
 SCREEN_ANGLES_DEG = (-5.0, 0.0, 5.0)
 SCREENED_VIEWS = 16
 
-#: Angle offsets of the screen when the seeds are also tried at image
-#: offsets (``offsets_px`` of :func:`search_views`): the seeds' own angle
-#: only, so that nine positions cost three times the plain screen, not
-#: nine (seeds that come in 15° steps are within the ±11° the spread
-#: orientation map accepts).
-SHIFTED_SCREEN_ANGLES_DEG = (0.0,)
-
 #: Edge samples per view in the coarse grid.
 COARSE_POINTS = 48
 
@@ -311,6 +304,7 @@ def _shifted(seeds: F64, offsets_px: F64) -> F64:
 def search_views(
     feats: ImageFeatures, templates: ViewTemplates, seeds: F64, chance: F64,
     max_candidates: int = 3, offsets_px: F64 | None = None, kept_seeds: int | None = None,
+    screen_angles_deg: tuple[float, ...] = SCREEN_ANGLES_DEG,
 ) -> list[ViewCandidate]:
     """The training views that explain an image location best.
 
@@ -332,6 +326,8 @@ def search_views(
     kept_seeds : int, optional
         Only the seeds (after offsets) whose best screened view scores
         highest go on to the full grid; all of them when None.
+    screen_angles_deg : tuple of float
+        Angle offsets (degrees) at which every view is screened at each seed.
 
     Returns
     -------
@@ -345,8 +341,7 @@ def search_views(
     # Stage 1: every view at the seeds' scale and a few angles (and
     # positions); stage 2: the views that scored best there on the full
     # angle and scale grid, at the seeds that did.
-    screen_angles = SCREEN_ANGLES_DEG if offsets_px is None else SHIFTED_SCREEN_ANGLES_DEG
-    stage1 = _grid_sims(seeds, np.radians(screen_angles), (1.0,))
+    stage1 = _grid_sims(seeds, np.radians(screen_angles_deg), (1.0,))
     views1 = np.tile(np.arange(n_views), len(stage1))
     sims1 = np.repeat(stage1, n_views, axis=0)
     llr1 = _score_coarse(feats, templates, views1, sims1, chance)

@@ -179,7 +179,8 @@ def test_offsets_find_a_view_whose_seed_is_off_by_more_than_the_spread(
         start = sim_true + np.array([7.0, -6.0, 0.0, 0.0])
         offsets = 7.0 * np.array([(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1)], float)
         for kind, kwargs in (("plain", {}), ("offsets", {"offsets_px": offsets,
-                                                          "kept_seeds": 2})):
+                                                          "kept_seeds": 2,
+                                                          "screen_angles_deg": (0.0,)})):
             found = search_views(feats, templates, start[None], chance_rates(feats), **kwargs)
             errors[kind].append(np.hypot(*(found[0].sim[:2] - sim_true[:2])) if found else 1e9)
     assert max(errors["offsets"]) < 2.0
