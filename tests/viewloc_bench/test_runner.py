@@ -10,7 +10,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from viewloc_bench import cli, runner, sets
-from viewloc_bench.localizers import LearnedObject, detection_from_json
+from viewloc_bench.localizers import CoreBackend, HttpBackend, LearnedObject, detection_from_json
 from viewloc_core.camera import Camera
 from viewloc_core.detection import Detection, Similarity2D
 from viewloc_core.pose import Pose
@@ -150,3 +150,19 @@ def test_detection_from_api_json() -> None:
     })
     assert d.similarity.x == 301.2 and d.model_view == 7 and d.refined
     assert np.allclose(d.pose.t_m2c, [1.0, 2.0, 500.0]) and d.polar_deg == 60.0
+
+
+@pytest.mark.parametrize("url", [None, "http://127.0.0.1:9"])
+def test_learn_seed_sets_the_models_seed_not_the_scenes(url: str | None) -> None:
+    base = ["--seed", "3"] + (["--url", url] if url else [])
+    args = cli.parse_args([*base, "--learn-seed", "7"])
+    backend = cli.make_backend(args)
+    assert isinstance(backend, HttpBackend if url else CoreBackend)
+    assert args.seed == 3  # the scenes are generated from --seed
+    assert backend.seed == 7
+    if isinstance(backend, HttpBackend):
+        assert backend.learning["seed"] == 7  # what the upload asks the service for
+    # Without --learn-seed, learning follows --seed as before.
+    default = cli.make_backend(cli.parse_args(base))
+    assert isinstance(default, HttpBackend if url else CoreBackend)
+    assert default.seed == 3
