@@ -9,6 +9,7 @@ from scipy.spatial.transform import Rotation
 from tests.viewloc_core.conftest import blob, render_scene
 from tests.viewloc_core.test_shading import LIGHTS
 from viewloc_core import localize as localize_module
+from viewloc_core.align import Match2D
 from viewloc_core.camera import Camera
 from viewloc_core.detection import Detection, Similarity2D
 from viewloc_core.learn import LearningConfig, learn_from_mesh
@@ -21,11 +22,17 @@ from viewloc_core.localize import (
     LocalizeOptions,
     _convincing,
     _Fitted,
+    _Located,
+    _other_sides,
+    _pose_centred,
     _ranked,
     localize,
 )
+from viewloc_core.near_symmetry import NearSymmetries
 from viewloc_core.pose import Pose, rotation_angle_deg
+from viewloc_core.refine import RefinementResult
 from viewloc_core.render import prepare
+from viewloc_core.view_search import ViewCandidate
 from viewloc_core.view_sphere import view_directions
 
 
@@ -143,3 +150,44 @@ def test_a_smooth_part_is_turned_the_right_way_by_its_shading(renderer, monkeypa
     with_shading = right_way(localize_module.SHADING_WEIGHT)
     assert with_shading >= 24
     assert with_shading >= right_way(0.0) + 3
+
+
+@pytest.mark.parametrize("near_symmetric", [True, False])
+def test_a_near_symmetric_parts_best_other_start_gets_the_full_fit(bracket_model, monkeypatch,
+                                                                    near_symmetric):
+    # The quick fit of a start stops on the coarse level and ranks below the
+    # full fit it competes with, even where its own full fit ranks higher.
+    # Here refinement leaves every pose where it is and confirms 0.70 of
+    # the contour quickly, 0.95 fully; the first fit confirmed 0.90. A part
+    # with near-symmetries gets the other start's full fit, and it wins; a
+    # part without them keeps the first fit (its quick rival ranks lower).
+    model = bracket_model
+    camera = Camera(600.0, 600.0, 319.5, 239.5, 640, 480)
+    tr = model.training
+    first_view = 0
+    other_view = next(v for v in range(len(tr.R_m2c))
+                      if rotation_angle_deg(tr.R_m2c[v], tr.R_m2c[first_view]) > 60.0)
+    sim = Similarity2D(320.0, 240.0, 0.0, 1.0)
+
+    def refine(edges, camera_, start, contour, options):
+        quick = options is localize_module.QUICK_REFINE
+        return RefinementResult(start, True, 3, 0.5, 0.70 if quick else 0.95)
+
+    class Shading:
+        near = NearSymmetries(np.eye(4)[None] if near_symmetric else np.zeros((0, 4, 4)),
+                              np.ones(1 if near_symmetric else 0))
+
+        def rank(self, camera_, result):
+            return result.inlier_fraction
+
+    monkeypatch.setattr(localize_module, "refine_pose", refine)
+    monkeypatch.setattr(NearSymmetries, "twins", lambda self, pose: [])
+    cand = lambda view: ViewCandidate(view, np.array([320.0, 240.0, 0.0, 1.0]), 100.0, 0.9)  # noqa: E731
+    loc = _Located(Match2D(0, np.array([320.0, 240.0, 0.0, 1.0]), 0.0, 0.9, 10, 100.0),
+                   [cand(first_view), cand(other_view)])
+    start = _pose_centred(model, first_view, sim, camera)
+    first = RefinementResult(start, True, 10, 0.5, 0.90)
+    result, view, _, _ = _other_sides(model, loc, 1.0, camera, None, None, Shading(),
+                                      first_view, sim, start, first)
+    assert (view, result.inlier_fraction) == ((other_view, 0.95) if near_symmetric
+                                              else (first_view, 0.90))
