@@ -125,6 +125,15 @@ RUNNER_UP_STARTS = 2
 #: the others are the starts that compete with it (see ``_other_sides``).
 VIEW_CANDIDATES = 6
 
+#: The same for a part with near-symmetries (:mod:`viewloc_core.near_symmetry`):
+#: its outline is nearly the same from several sides, so views far from the
+#: best are as well confirmed as its neighbours, and the rival views that
+#: the shading should judge lie beyond the best few (hard bench set,
+#: free-form part, models learned with seeds 0/1/2: AR_MSSD 0.625, 0.585,
+#: 0.510 -> 0.625, 0.610, 0.535 with 12; 12 for every part left the
+#: L-bracket, which has none, as it was and cost 3 ms per image).
+NEAR_SYMMETRIC_VIEW_CANDIDATES = 12
+
 #: Weight of the shading agreement (:mod:`viewloc_core.shading`, in [0, 1])
 #: beside the share of the contour confirmed, when fits of different views at
 #: one location compete: it decides between fits whose contours are
@@ -372,6 +381,14 @@ class _Located:
     def evidence(self) -> float:
         """Log-likelihood ratio of the best view (ranks locations; candidates not empty)."""
         return self.candidates[0].log_likelihood_ratio
+
+
+def _view_candidate_count(surface: tuple[SurfaceSamples, NearSymmetries] | None) -> int:
+    """Training views the view search returns per location for a part (its
+    surface and near-symmetries, None without a mesh or refinement)."""
+    if surface is not None and len(surface[1].transforms):
+        return NEAR_SYMMETRIC_VIEW_CANDIDATES
+    return VIEW_CANDIDATES
 
 
 def _fit_rank(result: RefinementResult) -> float:
@@ -800,11 +817,13 @@ def localize(
     templates = view_templates(model)
     chance = chance_rates(feats)
     located = []
+    surface = _surface(model) if contour is not None else None
+    n_candidates = _view_candidate_count(surface)
     for match in matches:
         seeds = np.array([best_member(model, m.model_view, m.sim, feats)[1]
                           for m in (match, *match.alternatives)])
         located.append(_Located(match, search_views(feats, templates, seeds, chance,
-                                                    VIEW_CANDIDATES)))
+                                                    n_candidates)))
     located = [loc for loc in located if loc.candidates]
     located.sort(key=lambda loc: -loc.evidence)
     colour = _ColourScene.of(model, level, factor) if contour is not None else None
@@ -829,7 +848,8 @@ def localize(
     # positive on each). Confirmed fits need no spare, which keeps the cost
     # to the doubtful images; without refinement nothing would overrule the
     # view search's order.
-    surface = _surface(model) if edges is not None else None
+    if edges is None:
+        surface = None
     if surface is None:
         colour = None
     shading = None if surface is None else _Shading(arr, *surface, colour)

@@ -26,6 +26,7 @@ from viewloc_core.localize import (
     _other_sides,
     _pose_centred,
     _ranked,
+    _view_candidate_count,
     localize,
 )
 from viewloc_core.near_symmetry import NearSymmetries
@@ -191,3 +192,16 @@ def test_a_near_symmetric_parts_best_other_start_gets_the_full_fit(bracket_model
                                       first_view, sim, start, first)
     assert (view, result.inlier_fraction) == ((other_view, 0.95) if near_symmetric
                                               else (first_view, 0.90))
+
+
+def test_a_near_symmetric_part_gets_more_view_candidates(bracket_model):
+    # An egg-like part's outline is nearly the same from several sides: its
+    # rival views lie beyond the best few, so the view search returns more.
+    blob_model = learn_from_mesh(blob(), LearningConfig(max_level=0, min_level=0,
+                                                        contour_level=1))
+    assert _view_candidate_count(localize_module._surface(blob_model)) == (
+        localize_module.NEAR_SYMMETRIC_VIEW_CANDIDATES)
+    assert _view_candidate_count(localize_module._surface(bracket_model)) == (
+        localize_module.VIEW_CANDIDATES)
+    assert _view_candidate_count(None) == localize_module.VIEW_CANDIDATES
+    assert localize_module.NEAR_SYMMETRIC_VIEW_CANDIDATES > localize_module.VIEW_CANDIDATES
