@@ -153,11 +153,6 @@ OTHER_VIEW_EVIDENCE_SHARE = 0.75
 #: symmetries) of the fit already made are not fitted again.
 DISTINCT_VIEW_DEG = 20.0
 
-#: Whether the best other start of a part with near-symmetries always gets
-#: the full fit, rather than only when its quick fit already ranks higher
-#: (see ``_other_sides``).
-NEAR_SYMMETRIC_FULL_FIT = True
-
 
 #: Image locations the part's colour proposes (:mod:`viewloc_core.part_colour`;
 #: models that know their part's colours, colour scenes, refinement on: only
@@ -568,7 +563,7 @@ def _other_sides(
     # rank within hundredths of each other, the best start always gets its
     # full fit (hard bench set, free-form part, models learned with seeds
     # 0/1/2: 6D right in 23/20/19 -> 24/22/19 of 40 images).
-    if best[0] > current or (NEAR_SYMMETRIC_FULL_FIT and len(shading.near.transforms)):
+    if best[0] > current or len(shading.near.transforms):
         other = refine_pose(edges, camera, best[4], contour, FINAL_REFINE)
         if shading.rank(camera, other) > current:
             return other, best[1], best[2], best[3]
@@ -848,11 +843,11 @@ def localize(
     # positive on each). Confirmed fits need no spare, which keeps the cost
     # to the doubtful images; without refinement nothing would overrule the
     # view search's order.
-    if edges is None:
-        surface = None
-    if surface is None:
+    shading = None
+    if edges is not None and surface is not None:
+        shading = _Shading(arr, *surface, colour)
+    else:
         colour = None
-    shading = None if surface is None else _Shading(arr, *surface, colour)
     fits = [_final_detection(model, loc, level, factor, camera, edges, contour,
                              index.view_radius_px, shading)
             for loc in located[: options.max_detections]]

@@ -183,7 +183,9 @@ def test_a_near_symmetric_parts_best_other_start_gets_the_full_fit(bracket_model
 
     monkeypatch.setattr(localize_module, "refine_pose", refine)
     monkeypatch.setattr(NearSymmetries, "twins", lambda self, pose: [])
-    cand = lambda view: ViewCandidate(view, np.array([320.0, 240.0, 0.0, 1.0]), 100.0, 0.9)  # noqa: E731
+    def cand(view: int) -> ViewCandidate:
+        return ViewCandidate(view, np.array([320.0, 240.0, 0.0, 1.0]), 100.0, 0.9)
+
     loc = _Located(Match2D(0, np.array([320.0, 240.0, 0.0, 1.0]), 0.0, 0.9, 10, 100.0),
                    [cand(first_view), cand(other_view)])
     start = _pose_centred(model, first_view, sim, camera)
