@@ -49,6 +49,7 @@ from viewloc_core.features import (
     wanted_bits,
 )
 from viewloc_core.model import ModelView, ObjectModel
+from viewloc_core.pairing import PairingSet, strongest_pairings
 from viewloc_core.seeding import seed_similarities
 from viewloc_core.similarity_fit import fit_similarities
 
@@ -146,7 +147,11 @@ class Match2D:
 
 @dataclass(frozen=True, slots=True)
 class ModelIndex:
-    """Model features stacked over all views with attribute search trees.
+    """Model features stacked over all views, their attributes ready to pair.
+
+    ``attr_z`` holds per feature kind the attributes of the model features in
+    units of their pairing standard deviations (:data:`ATTR_SIGMA`) and the
+    rows of those features.
 
     The edge samples of every view are padded to one length twice: a
     well-spread subset (``coarse_*``, screening) and all of them (``fine_*``,
@@ -164,7 +169,7 @@ class ModelIndex:
     scale: F64
     attrs: F64
     log_presence: F64
-    trees: dict[int, tuple[cKDTree, NDArray[np.int64]]]
+    attr_z: dict[int, tuple[F64, NDArray[np.int64]]]
     coarse_pts: F64
     coarse_bins: NDArray[np.int64]
     coarse_valid: NDArray[np.bool_]
@@ -199,7 +204,7 @@ class ModelIndex:
 
 
 def build_index(model: ObjectModel, coarse_points: int = 48) -> ModelIndex:
-    """Precompute the pairing trees and edge subsets of a model (once per model)."""
+    """Precompute the pairing attributes and edge subsets of a model (once per model)."""
     views = model.model_views
     view_of = np.concatenate([np.full(len(v.kind), i, np.int64) for i, v in enumerate(views)])
     kind = np.concatenate([v.kind for v in views])
@@ -208,11 +213,16 @@ def build_index(model: ObjectModel, coarse_points: int = 48) -> ModelIndex:
     scale = np.concatenate([v.scale for v in views]).astype(np.float64)
     attrs = np.concatenate([v.attrs for v in views]).astype(np.float64)
     log_presence = np.log(np.concatenate([v.presence for v in views]).astype(np.float64))
-    trees = {}
+    attr_z = {}
     for k, sigma in ATTR_SIGMA.items():
         idx = np.flatnonzero(kind == k)
-        if len(idx):
-            trees[k] = (cKDTree(attrs[idx] / sigma), idx)
+        z = attrs[idx] / sigma
+        # A feature with an undefined attribute or never present pairs with nothing.
+        ok = np.isfinite(z).all(axis=1) & np.isfinite(log_presence[idx])
+        # Sorted by the first attribute, as pairing.strongest_pairings reads them.
+        order = np.argsort(z[ok, 0], kind="stable")
+        if ok.any():
+            attr_z[k] = (np.ascontiguousarray(z[ok][order]), idx[ok][order])
     rng = np.random.default_rng(0)
     # Coarse edge subsets padded to one length so hypotheses batch together.
     coarse_pts = np.zeros((len(views), coarse_points, 2))
@@ -235,7 +245,7 @@ def build_index(model: ObjectModel, coarse_points: int = 48) -> ModelIndex:
         outline_px[i] = len(exy) * sample_spacing_px(exy)
     radius = model.f_train_px * model.diameter_mm / model.d0_mm / 2.0
     return ModelIndex(
-        view_of, kind, xy, theta, scale, attrs, log_presence, trees,
+        view_of, kind, xy, theta, scale, attrs, log_presence, attr_z,
         coarse_pts, coarse_bins, coarse_valid,
         np.ascontiguousarray(coarse_pts[..., 0], np.float32),
         np.ascontiguousarray(coarse_pts[..., 1], np.float32), coarse_bins.astype(np.uint8),
@@ -312,36 +322,36 @@ def _log_rarity(feats: ImageFeatures) -> F64:
 
 
 def _pairings(index: ModelIndex, feats: ImageFeatures, config: AlignConfig) -> tuple[
-    NDArray[np.int64], NDArray[np.int64], F64
+    NDArray[np.int64], NDArray[np.int64]
 ]:
-    """All plausible (image feature, model feature) pairings and their log weight."""
+    """All plausible (image feature, model feature) pairings, the
+    ``config.max_pairings`` strongest when there are more.
+
+    A model with many views in a busy image pairs millions of times; the
+    weakest pairings cost seconds and almost never seed the answer. Weakest
+    here means least likely under the model and most common in this image
+    (a checkerboard's junctions pair with every right angle of the model):
+    hard bench set, 38 -> 34 of 80 missed. The strength of a pairing is the
+    log likelihood of its attribute difference plus the model feature's log
+    presence, less the image feature's log clutter density and plus its
+    rarity in this image (:func:`_log_rarity`).
+    """
     g = feats.grouped
-    ks_all, js_all, ws_all = [], [], []
-    for k, (tree, model_idx) in index.trees.items():
-        img_idx = np.flatnonzero(g.kind == k)
-        if len(img_idx) == 0:
-            continue
+    rarity = _log_rarity(feats)
+    sets = []
+    for k, (model_z, model_rows) in index.attr_z.items():
+        img_rows = np.flatnonzero(g.kind == k)
         sigma = ATTR_SIGMA[k]
-        img_attrs = g.attrs[img_idx].astype(np.float64)
-        img_tree = cKDTree(img_attrs / sigma)
-        pairs = img_tree.sparse_distance_matrix(tree, config.attr_gate, output_type="ndarray")
-        if len(pairs) == 0:
-            continue
-        ki = img_idx[pairs["i"]]
-        mj = model_idx[pairs["j"]]
-        d2 = pairs["v"] ** 2
+        img_attrs = g.attrs[img_rows].astype(np.float64)
         active = sigma < 100
-        log_f = -0.5 * d2 - float(np.sum(np.log(sigma[active] * np.sqrt(2 * np.pi))))
-        # Per image feature, not per pairing: a busy image pairs millions of times.
-        log_bg = _log_background_density(k, img_attrs)
-        w = index.log_presence[mj] + log_f - log_bg[pairs["i"]]
-        ks_all.append(ki)
-        js_all.append(mj)
-        ws_all.append(w)
-    if not ks_all:
-        empty = np.zeros(0, np.int64)
-        return empty, empty, np.zeros(0)
-    return np.concatenate(ks_all), np.concatenate(js_all), np.concatenate(ws_all)
+        log_norm = float(np.sum(np.log(sigma[active] * np.sqrt(2 * np.pi))))
+        img_term = rarity[img_rows] - _log_background_density(k, img_attrs) - log_norm
+        img_z = img_attrs / sigma
+        # A feature with an undefined attribute pairs with nothing.
+        ok = np.isfinite(img_z).all(axis=1) & np.isfinite(img_term)
+        sets.append(PairingSet(img_rows[ok], model_rows, np.ascontiguousarray(img_z[ok]),
+                               model_z, img_term[ok], index.log_presence[model_rows]))
+    return strongest_pairings(sets, config.attr_gate, config.max_pairings)
 
 
 def _seeds(index: ModelIndex, feats: ImageFeatures, k: NDArray[np.int64], j: NDArray[np.int64],
@@ -650,18 +660,9 @@ def align(
     list of Match2D
         Best first by evidence; empty when nothing plausible is found.
     """
-    k, j, w = _pairings(index, feats, config)
+    k, j = _pairings(index, feats, config)
     if len(k) == 0:
         return []
-    if len(k) > config.max_pairings:
-        # A model with many views in a busy image pairs millions of times;
-        # the weakest pairings cost seconds and almost never seed the answer.
-        # Weakest here means least likely under the model and most common in
-        # this image (a checkerboard's junctions pair with every right angle
-        # of the model): hard bench set, 38 -> 34 of 80 missed.
-        keep = np.argpartition(-(w + _log_rarity(feats)[k]), config.max_pairings)
-        keep = keep[: config.max_pairings]
-        k, j, w = k[keep], j[keep], w[keep]
     sims, pairing = _seeds(index, feats, k, j, config)
     if len(sims) == 0:
         return []

@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 from viewloc_core import (
     feature_kernels,
     normal_search,
+    pairing,
     part_colour,
     sample_evidence,
     seeding,
@@ -251,6 +252,7 @@ def warm_up() -> None:
     feature_kernels.warm_up()
     similarity_fit.warm_up()
     seeding.warm_up()
+    pairing.warm_up()
     sample_evidence.warm_up()
     normal_search.warm_up()
     shift_search.warm_up()

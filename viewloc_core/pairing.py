@@ -1,0 +1,206 @@
+"""The strongest (image feature, model feature) pairings of an image, compiled.
+
+The alignment pairs every image feature with every model feature of its kind
+whose attributes lie within a gate (:func:`viewloc_core.align.align`), and
+keeps the strongest pairings only: a model with many views in a busy photo
+pairs millions of times (LM-O, 400x300 level: about 2.5 million, of which
+40,000 are kept). The attributes are two numbers per feature and the gate
+lets half of all pairs through, so a search tree saves little; what cost was
+writing out millions of pairings and their weights only to select a few
+percent of them (about 100 ms per LM-O photo).
+
+Here the pairs are visited twice without storing them: the first pass
+histograms their strengths, which fixes the weakest strength that is kept;
+the second writes out only the pairings at least that strong.
+
+A pairing's strength is ``image_term[i] + model_term[j] - d² / 2``, with
+``d`` the distance of the attributes in units of their pairing standard
+deviations (:data:`viewloc_core.align.ATTR_SIGMA`): the log likelihood of the
+attribute difference plus terms of either feature alone.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+from numba import njit
+from numpy.typing import NDArray
+
+F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+
+#: Bins of the strength histogram: the kept pairings are those of the bins
+#: at the top that hold ``max_pairings``, cut exactly among the last bin's.
+HISTOGRAM_BINS = 4096
+
+#: The cut is first estimated from every ``SAMPLE_STRIDE``-th image
+#: feature's pairings, as the strength above which the sample holds
+#: ``SAMPLE_MARGIN`` times its share of the pairings kept (a margin, so that
+#: the full count rarely falls short and needs another pass).
+SAMPLE_STRIDE = 8
+SAMPLE_MARGIN = 1.5
+
+
+@dataclass(frozen=True, slots=True)
+class PairingSet:
+    """The features of one kind, on either side, ready to pair.
+
+    Attributes
+    ----------
+    image_rows, model_rows : (N,) and (M,) int64
+        Rows of the features in the image's and the model's feature arrays.
+    image_z, model_z : (N, D) and (M, D) float64
+        Attributes in units of their pairing standard deviations.
+    image_term, model_term : (N,) and (M,) float64
+        Each feature's own part of the strength of its pairings.
+    """
+
+    image_rows: I64
+    model_rows: I64
+    image_z: F64
+    model_z: F64
+    image_term: F64
+    model_term: F64
+
+
+@njit(cache=True, nogil=True)
+def _pass(image_z: F64, model_z: F64, image_term: F64, model_term: F64, gate: float,
+          lo: float, hi: float, hist: I64, min_bin: int, out_i: I64, out_j: I64,
+          out_strength: F64, n_out: int, image_stride: int) -> int:  # pragma: no cover
+    """One pass over the pairs within the gate and at least ``lo`` strong.
+
+    Counts their strengths in ``hist`` (bins spanning ``lo`` .. ``hi``, the
+    last one holding everything above) and writes those falling in
+    ``min_bin`` or above from row ``n_out`` on (none when ``min_bin`` is
+    past the last bin); returns the next free row. Only every
+    ``image_stride``-th image feature is paired. ``model_z`` is sorted by
+    its first column.
+    """
+    n_bins = hist.shape[0]
+    inv_width = n_bins / max(hi - lo, 1e-9)
+    gate_sq = gate * gate
+    dims = image_z.shape[1]
+    best_model = model_term.max()
+    for i in range(0, image_z.shape[0], image_stride):
+        a = image_term[i]
+        if a + best_model < lo:
+            continue  # weaker than lo with any model feature
+        # The gate holds the first attribute within ``gate``.
+        j0 = np.searchsorted(model_z[:, 0], image_z[i, 0] - gate)
+        j1 = np.searchsorted(model_z[:, 0], image_z[i, 0] + gate, side="right")
+        for j in range(j0, j1):
+            d2 = 0.0
+            for c in range(dims):
+                diff = image_z[i, c] - model_z[j, c]
+                d2 += diff * diff
+            strength = a + model_term[j] - 0.5 * d2
+            if d2 > gate_sq or strength < lo:
+                continue
+            b = min(int((strength - lo) * inv_width), n_bins - 1)
+            hist[b] += 1
+            if b >= min_bin:
+                out_i[n_out] = i
+                out_j[n_out] = j
+                out_strength[n_out] = strength
+                n_out += 1
+    return n_out
+
+
+def _count(sets: list[PairingSet], gate: float, lo: float, hi: float,
+           image_stride: int = 1) -> I64:
+    """Histogram of the strengths at least ``lo`` (bins up to ``hi``)."""
+    hist = np.zeros(HISTOGRAM_BINS, np.int64)
+    none = np.zeros(0, np.int64)
+    for s in sets:
+        _pass(s.image_z, s.model_z, s.image_term, s.model_term, gate, lo, hi, hist,
+              HISTOGRAM_BINS, none, none, np.zeros(0), 0, image_stride)
+    return hist
+
+
+def _lowest_kept(hist: I64, wanted: float, lo: float, hi: float) -> float:
+    """The lower edge of the fewest top bins holding ``wanted`` counts
+    (``lo`` when all of them hold fewer)."""
+    from_top = np.cumsum(hist[::-1])
+    top_bins = int(np.searchsorted(from_top, wanted)) + 1
+    return lo + max(HISTOGRAM_BINS - top_bins, 0) * (hi - lo) / HISTOGRAM_BINS
+
+
+def strongest_pairings(sets: list[PairingSet], gate: float, max_pairings: int
+                       ) -> tuple[I64, I64]:
+    """The pairings within ``gate`` of all sets, the ``max_pairings``
+    strongest when there are more.
+
+    Parameters
+    ----------
+    sets : list of PairingSet
+        One per feature kind (features of different kinds never pair).
+    gate : float
+        Largest attribute distance of a pairing, standard deviations.
+    max_pairings : int
+        Most pairings returned.
+
+    Returns
+    -------
+    image_rows, model_rows : (N,) int64
+        The pairings, ``N <= max_pairings``, in no particular order (ties at
+        the cut broken arbitrarily).
+    """
+    sets = [_sorted(s) for s in sets if len(s.image_rows) and len(s.model_rows)]
+    if not sets:
+        empty = np.zeros(0, np.int64)
+        return empty, empty
+    bottom = min(float(s.image_term.min() + s.model_term.min()) for s in sets) - 0.5 * gate**2
+    top = max(float(s.image_term.max() + s.model_term.max()) for s in sets)
+    # Where the cut will lie, from a sample of the image features: an image
+    # feature weaker than it with every model feature is then passed over.
+    sample = _count(sets, gate, bottom, top, SAMPLE_STRIDE)
+    sampled = sum(len(range(0, len(s.image_rows), SAMPLE_STRIDE)) for s in sets)
+    share = sampled / sum(len(s.image_rows) for s in sets)
+    lo = _lowest_kept(sample, SAMPLE_MARGIN * share * max_pairings, bottom, top)
+    while True:
+        hist = _count(sets, gate, lo, top)
+        if hist.sum() >= max_pairings or lo <= bottom:
+            break
+        lo = max(bottom, lo - (top - lo))  # the sample misled: reach twice as far
+    # The fewest top bins that hold max_pairings (all when there are fewer).
+    from_top = np.cumsum(hist[::-1])
+    min_bin = max(HISTOGRAM_BINS - int(np.searchsorted(from_top, max_pairings)) - 1, 0)
+    n_kept = int(hist[min_bin:].sum())
+    out_i = np.empty(n_kept, np.int64)
+    out_j = np.empty(n_kept, np.int64)
+    strength = np.empty(n_kept, np.float64)
+    image_rows, model_rows = [], []
+    n_out = 0
+    for s in sets:
+        start = n_out
+        n_out = _pass(s.image_z, s.model_z, s.image_term, s.model_term, gate, lo, top,
+                      np.zeros(HISTOGRAM_BINS, np.int64), min_bin, out_i, out_j, strength,
+                      n_out, 1)
+        image_rows.append(s.image_rows[out_i[start:n_out]])
+        model_rows.append(s.model_rows[out_j[start:n_out]])
+    rows_i, rows_j = np.concatenate(image_rows), np.concatenate(model_rows)
+    if n_out > max_pairings:
+        keep = np.argpartition(-strength, max_pairings)[:max_pairings]
+        rows_i, rows_j = rows_i[keep], rows_j[keep]
+    return rows_i, rows_j
+
+
+def _sorted(s: PairingSet) -> PairingSet:
+    """The set with its model features sorted by their first attribute
+    (:func:`viewloc_core.align.build_index` stores them so)."""
+    first = s.model_z[:, 0]
+    if np.all(first[1:] >= first[:-1]):
+        return s
+    order = np.argsort(first, kind="stable")
+    return replace(s, model_rows=s.model_rows[order],
+                   model_z=np.ascontiguousarray(s.model_z[order]),
+                   model_term=s.model_term[order])
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's cache) for the types the alignment passes."""
+    z = np.zeros((1, 2))
+    term = np.zeros(1)
+    strongest_pairings([PairingSet(np.zeros(1, np.int64), np.zeros(1, np.int64), z, z, term,
+                                   term)], 1.0, 1)
