@@ -22,6 +22,7 @@ import trimesh
 from numpy.typing import NDArray
 
 from viewloc_core import (
+    contour_kernels,
     feature_kernels,
     normal_search,
     pairing,
@@ -255,6 +256,7 @@ def warm_up() -> None:
     pairing.warm_up()
     sample_evidence.warm_up()
     normal_search.warm_up()
+    contour_kernels.warm_up()
     shift_search.warm_up()
 
 

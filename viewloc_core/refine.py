@@ -38,6 +38,7 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from viewloc_core.camera import Camera
+from viewloc_core.contour_kernels import edge_residuals, project_contour
 from viewloc_core.contour_model import ContourModel
 from viewloc_core.errors import InvalidImageError, InvalidInputError
 from viewloc_core.gradient import image_gradient
@@ -269,20 +270,26 @@ class _Matches:
 class _Projector:
     """Projects the contour of the view nearest to a pose; one per refinement.
 
-    Keeps each view's points and normals stacked as one float64 (2n, 3)
-    array, so a projection is one matrix product and one camera projection
-    instead of a conversion, two products and two projections.
+    Keeps each view's points and normals (every ``stride``-th) as one
+    float64 (2n, 3) array, points first, converted once per view rather than
+    in every iteration; :func:`viewloc_core.contour_kernels.project_contour`
+    projects them.
     """
 
-    __slots__ = ("camera", "model", "stride", "_stacked", "_focal", "_windows")
+    __slots__ = ("camera", "model", "stride", "_stacked", "_intrinsics", "_dist", "_distorted",
+                 "_windows")
 
     def __init__(self, camera: Camera, model: ContourModel, stride: int = 1) -> None:
         self.camera = camera
         self.model = model
         self.stride = stride
         self._stacked: dict[int, Array] = {}
-        self._focal = camera.focal_px
-        self._windows: dict[float, tuple[Array, Array]] = {}
+        self._intrinsics = np.array([camera.fx, camera.fy, camera.cx, camera.cy,
+                                     camera.focal_px])
+        self._dist = np.zeros(8)
+        self._dist[:len(camera.dist)] = camera.dist
+        self._distorted = camera.has_distortion
+        self._windows: dict[float, Array] = {}
 
     def _view(self, view: int) -> Array:
         stacked = self._stacked.get(view)
@@ -293,13 +300,14 @@ class _Projector:
             self._stacked[view] = stacked
         return stacked
 
-    def _window(self, margin_px: float) -> tuple[Array, Array]:
+    def _window(self, margin_px: float) -> Array:
+        """Centre and half-size of ``[margin, size - 1 - margin]`` on both axes, (4,)."""
         window = self._windows.get(margin_px)
         if window is None:
             cam = self.camera
             lo = np.array([margin_px, margin_px])
             hi = np.array([cam.width - 1 - margin_px, cam.height - 1 - margin_px])
-            window = (0.5 * (lo + hi), 0.5 * (hi - lo))
+            window = np.concatenate([0.5 * (lo + hi), 0.5 * (hi - lo)])
             self._windows[margin_px] = window
         return window
 
@@ -309,42 +317,12 @@ class _Projector:
         n = len(stacked) // 2
         if n == 0:
             return None
-        # Rows :n become the camera points X, rows n: the rotated normals and
-        # then the points a step along them, so both project in one call.
-        both = stacked @ pose.R_m2c.T
-        X = both[:n]
-        X += pose.t_m2c
-        if not (X[:, 2] > 1.0).all():
-            front = X[:, 2] > 1.0
-            both = np.concatenate([X[front], both[n:][front]])
-            n = len(both) // 2
-            if n == 0:
-                return None
-            X = both[:n]
-        # A step of about a pixel along the stored 3D normal gives the 2D normal.
-        step = both[n:]
-        step *= (X[:, 2] / self._focal)[:, None]
-        step += X
-        uv_both = self.camera.project(both)
-        uv = uv_both[:n]
-        d = uv_both[n:]
-        d -= uv
-        d_sq = d * d
-        norm = np.sqrt(d_sq[:, 0] + d_sq[:, 1])
-        # Inside [margin, size - 1 - margin] on both axes: |uv - centre| <= half.
-        centre, half = self._window(margin_px)
-        inside = np.abs(uv - centre) <= half
-        ok = inside[:, 0] & inside[:, 1]
-        ok &= norm > 1e-6
-        if ok.all():
-            d /= norm[:, None]
-            return _Projection(uv, d, X)
-        if not ok.any():
+        uv, n2, X = project_contour(stacked[:n], stacked[n:], pose.R_m2c, pose.t_m2c,
+                                    self._intrinsics, self._dist, self._distorted,
+                                    self._window(margin_px))
+        if len(uv) == 0:
             return None
-        kept = np.flatnonzero(ok)
-        d = d.take(kept, axis=0)
-        d /= norm.take(kept)[:, None]
-        return _Projection(uv.take(kept, axis=0), d, X.take(kept, axis=0))
+        return _Projection(uv, n2, X)
 
 
 @functools.lru_cache(maxsize=64)
@@ -408,30 +386,10 @@ def _matches(
     search: int,
     options: RefineOptions,
 ) -> _Matches:
-    uv, n2, X = proj.uv, proj.n2, proj.X
-    f = 2.0**level
-    uv_l = (uv + 0.5) / f - 0.5 if level else uv
-    found, offset = _search(edges.gradients[level], uv_l, n2, search, options.min_gradient,
-                            math.cos(math.radians(options.max_angle_deg)))
-    if not found.any():
-        return _Matches(np.zeros((0, 6)), np.zeros(0), len(uv))
-    if not found.all():
-        # Taking indices costs half of three boolean masks.
-        kept = np.flatnonzero(found)
-        n2, X, offset = n2.take(kept, axis=0), X.take(kept, axis=0), offset.take(kept)
-    # The matched edge lies offset·f full-res pixels along n2 from the
-    # projection; the residual n·(π(X) - q) is minus that.
-    r = -offset * f
-    x, y, z = X[:, 0], X[:, 1], X[:, 2]
-    # dπ/dX of the pinhole part (distortion is a small, smooth correction).
-    a = n2[:, 0] * camera.fx / z
-    b = n2[:, 1] * camera.fy / z
-    c = -(a * x + b * y) / z
-    # Rotation about the object origin: δX = ω × P + δt with P = X - t, so
-    # n·J_π·(ω × P) = ω · (P × (J_πᵀ n)).
-    px, py, pz = x - pose.t_m2c[0], y - pose.t_m2c[1], z - pose.t_m2c[2]
-    J = np.column_stack([py * c - pz * b, pz * a - px * c, px * b - py * a, a, b, c])
-    return _Matches(J, r, len(uv))
+    J, r = edge_residuals(edges.gradients[level], proj.uv, proj.n2, proj.X, pose.t_m2c,
+                          camera.fx, camera.fy, level, search, options.min_gradient,
+                          math.cos(math.radians(options.max_angle_deg)), _search_prior(search))
+    return _Matches(J, r, len(proj.uv))
 
 
 @dataclass(frozen=True, slots=True)
