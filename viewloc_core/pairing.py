@@ -9,9 +9,13 @@ lets half of all pairs through, so a search tree saves little; what cost was
 writing out millions of pairings and their weights only to select a few
 percent of them (about 100 ms per LM-O photo).
 
-Here the pairs are visited twice without storing them: the first pass
-histograms their strengths, which fixes the weakest strength that is kept;
-the second writes out only the pairings at least that strong.
+Here the pairs are visited without storing them. A pass over a sample of
+the image features estimates how strong the weakest kept pairing will be;
+a pass over all of them histograms the strengths above that estimate, which
+fixes the cut exactly; a last pass writes out only the pairings above the
+cut. Passes above an estimate skip every image feature that is weaker than
+it with any model feature, and the model features are sorted by their first
+attribute, so only those within the gate on it are visited.
 
 A pairing's strength is ``image_term[i] + model_term[j] - d² / 2``, with
 ``d`` the distance of the attributes in units of their pairing standard
@@ -54,6 +58,10 @@ class PairingSet:
         Attributes in units of their pairing standard deviations.
     image_term, model_term : (N,) and (M,) float64
         Each feature's own part of the strength of its pairings.
+
+    All finite. Model features sorted by their first attribute are used as
+    they are (:func:`viewloc_core.align.build_index` stores them so), others
+    are sorted on every use.
     """
 
     image_rows: I64
