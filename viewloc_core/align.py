@@ -219,10 +219,11 @@ def build_index(model: ObjectModel, coarse_points: int = 48) -> ModelIndex:
         z = attrs[idx] / sigma
         # A feature with an undefined attribute or never present pairs with nothing.
         ok = np.isfinite(z).all(axis=1) & np.isfinite(log_presence[idx])
-        # Sorted by the first attribute, as pairing.strongest_pairings reads them.
-        order = np.argsort(z[ok, 0], kind="stable")
-        if ok.any():
-            attr_z[k] = (np.ascontiguousarray(z[ok][order]), idx[ok][order])
+        idx, z = idx[ok], z[ok]
+        if len(idx):
+            # Sorted by the first attribute, as pairing.strongest_pairings reads them.
+            order = np.argsort(z[:, 0], kind="stable")
+            attr_z[k] = (np.ascontiguousarray(z[order]), idx[order])
     rng = np.random.default_rng(0)
     # Coarse edge subsets padded to one length so hypotheses batch together.
     coarse_pts = np.zeros((len(views), coarse_points, 2))
