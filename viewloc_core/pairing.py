@@ -126,12 +126,11 @@ def _count(sets: list[PairingSet], gate: float, lo: float, hi: float,
     return hist
 
 
-def _lowest_kept(hist: I64, wanted: float, lo: float, hi: float) -> float:
-    """The lower edge of the fewest top bins holding ``wanted`` counts
-    (``lo`` when all of them hold fewer)."""
+def _first_kept_bin(hist: I64, wanted: float) -> int:
+    """The first of the fewest top bins that hold ``wanted`` counts (0 when
+    all of them hold fewer)."""
     from_top = np.cumsum(hist[::-1])
-    top_bins = int(np.searchsorted(from_top, wanted)) + 1
-    return lo + max(HISTOGRAM_BINS - top_bins, 0) * (hi - lo) / HISTOGRAM_BINS
+    return max(HISTOGRAM_BINS - int(np.searchsorted(from_top, wanted)) - 1, 0)
 
 
 def strongest_pairings(sets: list[PairingSet], gate: float, max_pairings: int
@@ -165,15 +164,14 @@ def strongest_pairings(sets: list[PairingSet], gate: float, max_pairings: int
     sample = _count(sets, gate, bottom, top, SAMPLE_STRIDE)
     sampled = sum(len(range(0, len(s.image_rows), SAMPLE_STRIDE)) for s in sets)
     share = sampled / sum(len(s.image_rows) for s in sets)
-    lo = _lowest_kept(sample, SAMPLE_MARGIN * share * max_pairings, bottom, top)
+    lo = bottom + (_first_kept_bin(sample, SAMPLE_MARGIN * share * max_pairings)
+                   * (top - bottom) / HISTOGRAM_BINS)
     while True:
         hist = _count(sets, gate, lo, top)
         if hist.sum() >= max_pairings or lo <= bottom:
             break
         lo = max(bottom, lo - (top - lo))  # the sample misled: reach twice as far
-    # The fewest top bins that hold max_pairings (all when there are fewer).
-    from_top = np.cumsum(hist[::-1])
-    min_bin = max(HISTOGRAM_BINS - int(np.searchsorted(from_top, max_pairings)) - 1, 0)
+    min_bin = _first_kept_bin(hist, max_pairings)
     n_kept = int(hist[min_bin:].sum())
     out_i = np.empty(n_kept, np.int64)
     out_j = np.empty(n_kept, np.int64)
