@@ -1,4 +1,4 @@
-"""Near-symmetries: half turns that map a part almost onto itself.
+"""Near-symmetries: half turns and reflections that map a part almost onto itself.
 
 A part that is nearly an ellipsoid, a box or a cylinder (an egg with a few
 bumps, a casting with one boss) has almost the same outline after a half
@@ -10,23 +10,36 @@ wrong, and the small differences (a bump, a dent) show in the shading:
 :func:`viewloc_core.localize` tries them as extra starts and lets contour
 and shading decide.
 
-Found by :func:`viewloc_core.symmetry.near_half_turns` with the surface test
-of the exact symmetry detection: a half turn about a principal axis through
-the surface centroid is a near-symmetry when it moves the surface by little
-on average (relative to the part's size), and is not one of the part's exact
-symmetries (those are equivalent poses, not rivals).
+A part with a (near) mirror plane has a second kind of rival: the pose
+*reversed in depth*. Reflecting the part in its mirror plane and then the
+scene in the plane through the part's centre across the line of sight
+gives a proper rotation (two reflections) whose outline is the same to
+first order in the part's depth over its distance: a part tilted towards
+the camera and the same part tilted away (the ambiguity of a plane's pose
+under weak perspective; for an egg, the top seen from above and the
+bottom seen from below). No half turn reaches it (hard bench set,
+free-form part: 7 of the 15 poses that came out wrong were within 25° of
+this reversal of the reported pose, 4-19° in most).
+
+Found by :func:`viewloc_core.symmetry.near_half_turns` and
+:func:`viewloc_core.symmetry.near_mirrors` with the surface test of the
+exact symmetry detection: a half turn about a principal axis, or a
+reflection through the surface centroid, is a near-symmetry when it moves
+the surface by little on average (relative to the part's size); half turns
+that are exact symmetries are left out (those are equivalent poses, not
+rivals).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import trimesh
 from numpy.typing import NDArray
 
-from viewloc_core.pose import Pose
-from viewloc_core.symmetry import Symmetries, near_half_turns
+from viewloc_core.pose import Pose, orthonormalize
+from viewloc_core.symmetry import Symmetries, near_half_turns, near_mirrors, surface_centroid
 
 F64 = NDArray[np.float64]
 
@@ -39,7 +52,7 @@ MAX_MEAN_GAP_SHARE = 0.03
 
 @dataclass(frozen=True, slots=True, eq=False)
 class NearSymmetries:
-    """Half turns that map a part almost onto itself.
+    """Half turns and reflections that map a part almost onto itself.
 
     Attributes
     ----------
@@ -48,10 +61,21 @@ class NearSymmetries:
     mean_gap_mm : (K,) float64
         Mean distance of the turned surface from the surface, beyond the
         sampling floor, mm.
+    mirrors : (M, 4, 4) float64
+        Reflections of the part's frame (``det = -1``; M may be 0), each
+        fixing ``centre``.
+    mirror_gap_mm : (M,) float64
+        The same distance for each reflection, mm.
+    centre : (3,) float64
+        The surface centroid, part frame, mm (where the depth reversal of
+        :meth:`reversals` pivots).
     """
 
     transforms: F64
     mean_gap_mm: F64
+    mirrors: F64 = field(default_factory=lambda: np.zeros((0, 4, 4)))
+    mirror_gap_mm: F64 = field(default_factory=lambda: np.zeros(0))
+    centre: F64 = field(default_factory=lambda: np.zeros(3))
 
     def twins(self, pose: Pose) -> list[Pose]:
         """The poses that show the part moved by each near-symmetry.
@@ -72,9 +96,47 @@ class NearSymmetries:
         R, t = pose.R_m2c, pose.t_m2c
         return [Pose(R @ T[:3, :3], t + R @ T[:3, 3]) for T in self.transforms]
 
+    def reversals(self, pose: Pose) -> list[Pose]:
+        """The poses that show the part mirrored, then reversed in depth.
+
+        A point ``X`` of the part goes to ``M X`` (a near mirror symmetry),
+        then ``pose`` applies, then the camera-frame reflection across the
+        plane through the centroid's image ``p`` normal to its line of sight
+        ``r = p / |p|``: ``S = I - 2 r r^T`` about ``p``. The rotation is
+        ``S R Q`` (proper: two reflections); the centroid stays at ``p``, and
+        offsets from it across the line of sight are kept while those along
+        it change sign, so the outline is the same to first order.
+
+        Parameters
+        ----------
+        pose : Pose
+            Part frame -> camera.
+
+        Returns
+        -------
+        list of Pose
+            One per reflection in ``mirrors``, in order; none when the
+            centroid is at the camera centre.
+        """
+        R, t = pose.R_m2c, pose.t_m2c
+        p = R @ self.centre + t
+        distance = float(np.linalg.norm(p))
+        if distance == 0.0:
+            return []
+        r = p / distance
+        S = np.eye(3) - 2.0 * np.outer(r, r)
+        out = []
+        for M in self.mirrors:
+            R_rev = S @ R @ M[:3, :3]
+            # X -> S (R (Q X + m) + t - p) + p, with R_rev = S R Q.
+            t_rev = S @ (R @ M[:3, 3] + t - p) + p
+            out.append(Pose(orthonormalize(R_rev), t_rev))
+        return out
+
 
 def near_symmetries(mesh: trimesh.Trimesh, exact: Symmetries) -> NearSymmetries:
-    """The half turns about the principal axes that nearly map the part onto itself.
+    """The half turns about the principal axes and the reflections through the
+    centroid that nearly map the part onto itself.
 
     Parameters
     ----------
@@ -88,4 +150,5 @@ def near_symmetries(mesh: trimesh.Trimesh, exact: Symmetries) -> NearSymmetries:
     NearSymmetries
     """
     transforms, gaps = near_half_turns(mesh, exact, max_gap_frac=MAX_MEAN_GAP_SHARE)
-    return NearSymmetries(transforms, gaps)
+    mirrors, mirror_gaps = near_mirrors(mesh, exact, max_gap_frac=MAX_MEAN_GAP_SHARE)
+    return NearSymmetries(transforms, gaps, mirrors, mirror_gaps, surface_centroid(mesh))

@@ -180,11 +180,16 @@ class _SurfaceTest:
         )
 
 
+def surface_centroid(mesh: trimesh.Trimesh) -> Array:
+    """The area-weighted centroid of the surface, (3,) mm: fixed by every
+    symmetry of the surface (and every near one this module finds)."""
+    return np.asarray(mesh.triangles_center.T @ mesh.area_faces / mesh.area, dtype=np.float64)
+
+
 def _centroid_and_diagonal(mesh: trimesh.Trimesh) -> tuple[Array, float]:
-    """The surface centroid (fixed by every symmetry of the surface; (3,) mm)
-    and the bounding-box diagonal (mm), the size tolerances are relative to."""
-    centre = np.asarray(mesh.triangles_center.T @ mesh.area_faces / mesh.area, dtype=np.float64)
-    return centre, float(np.linalg.norm(mesh.bounds[1] - mesh.bounds[0]))
+    """The surface centroid ((3,) mm) and the bounding-box diagonal (mm), the
+    size tolerances are relative to."""
+    return surface_centroid(mesh), float(np.linalg.norm(mesh.bounds[1] - mesh.bounds[0]))
 
 
 def _candidate_axes(mesh: trimesh.Trimesh, centre: Array) -> tuple[list[Array], Array, Array]:
@@ -337,6 +342,70 @@ def near_half_turns(
             turns.append(T)
             gaps.append(gap)
     return (np.asarray(turns, np.float64).reshape(-1, 4, 4), np.asarray(gaps, np.float64))
+
+
+def near_mirrors(
+    mesh: trimesh.Trimesh, exact: Symmetries, *, max_gap_frac: float = 0.03,
+    same_tol_deg: float = 30.0, n_points: int = 1000, rng: int = 0,
+) -> tuple[Array, Array]:
+    """Reflections through the surface centroid that map a mesh almost onto itself.
+
+    Candidates are the reflections in the planes through the centroid normal
+    to the principal axes and to the other candidate axes (coordinate axes,
+    large facets' normals: inside a degenerate eigenspace the principal axes
+    are arbitrary), and the point reflection in the centroid. The test is
+    :func:`near_half_turns`'s. Two reflections whose product is (within
+    ``same_tol_deg``) one of the part's exact symmetries give equivalent
+    poses (``R Q1 = R Q2 G``), or poses a fit does not tell apart (planes a
+    few degrees apart), so only the one with the smaller gap is kept.
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh
+        The part, mm, in the frame the transforms are wanted in.
+    exact : Symmetries
+        Its exact symmetry group (rotation parts compared).
+    max_gap_frac : float
+        Largest mean distance of the reflected surface from the surface beyond
+        the sampling floor, as a fraction of the diameter.
+    same_tol_deg : float
+        Two reflections whose product is within this angle of an exact
+        symmetry (the identity included) count as one: planes up to half
+        this angle apart.
+    n_points : int
+        Surface probes (the reference set is 5x denser).
+    rng : int
+        Seed of the surface sampling.
+
+    Returns
+    -------
+    transforms : (K, 4, 4) float64
+        Affine maps ``X -> Q X + m`` with ``det Q = -1``, each fixing the
+        surface centroid; smallest gap first.
+    mean_gap_mm : (K,) float64
+    """
+    centre, diameter = _centroid_and_diagonal(mesh)
+    test = _SurfaceTest(mesh, n_points, max_gap_frac * diameter, rng)
+    axes, _, evecs = _candidate_axes(mesh, centre)
+    normals: list[Array] = []
+    for n in [*evecs.T, *axes]:
+        if all(abs(float(np.dot(n, m))) < math.cos(math.radians(5.0)) for m in normals):
+            normals.append(np.asarray(n, np.float64))
+    found: list[tuple[float, Array]] = []
+    for Q in [np.eye(3) - 2.0 * np.outer(n, n) for n in normals] + [-np.eye(3)]:
+        T = np.eye(4)
+        T[:3, :3] = Q
+        T[:3, 3] = centre - Q @ centre
+        gap = test.mean_gap_mm(T)
+        if gap < test.tol:
+            found.append((gap, T))
+    kept: list[tuple[float, Array]] = []
+    for gap, T in sorted(found, key=lambda f: f[0]):
+        if not any(within_angle_deg(np.eye(3), K[:3, :3] @ T[:3, :3], exact, same_tol_deg)
+                   for _, K in kept):
+            kept.append((gap, T))
+    return (np.asarray([T for _, T in kept], np.float64).reshape(-1, 4, 4),
+            np.asarray([g for g, _ in kept], np.float64))
 
 
 def _with_flip(
