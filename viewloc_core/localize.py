@@ -29,6 +29,7 @@ from viewloc_core import (
     part_colour,
     sample_evidence,
     seeding,
+    shading_kernels,
     shift_search,
     similarity_fit,
 )
@@ -267,6 +268,7 @@ def warm_up() -> None:
     sample_evidence.warm_up()
     normal_search.warm_up()
     contour_kernels.warm_up()
+    shading_kernels.warm_up()
     shift_search.warm_up()
 
 

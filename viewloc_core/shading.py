@@ -32,9 +32,9 @@ import numpy as np
 import trimesh
 from numpy.typing import NDArray
 
+from viewloc_core import shading_kernels
 from viewloc_core.camera import Camera
 from viewloc_core.pose import Pose
-from viewloc_core.robust import tukey_weights
 
 F64 = NDArray[np.float64]
 
@@ -147,43 +147,17 @@ def intensity_at(image: NDArray[np.generic], uv: NDArray[np.floating]) -> F64:
 
 def visible_samples(samples: SurfaceSamples, camera: Camera, pose: Pose) -> tuple[F64, F64]:
     """Image positions (M, 2) and camera-frame normals (M, 3) of the samples
-    the camera sees at ``pose``, facing it and in front of anything else."""
-    pts_cam = samples.points_mm @ pose.R_m2c.T + pose.t_m2c
-    normals_cam = samples.normals @ pose.R_m2c.T
-    in_front = pts_cam[:, 2] > 1e-6
-    ray = pts_cam / np.maximum(np.linalg.norm(pts_cam, axis=1, keepdims=True), 1e-12)
-    facing = -np.sum(normals_cam * ray, axis=1) > MIN_FACING_COS
-    idx = np.flatnonzero(in_front & facing)
-    if len(idx) == 0:
-        return np.zeros((0, 2)), np.zeros((0, 3))
-    uv = camera.project(pts_cam[idx])
-    inside = ((uv[:, 0] >= 0) & (uv[:, 0] <= camera.width - 1)
-              & (uv[:, 1] >= 0) & (uv[:, 1] <= camera.height - 1))
-    idx, uv = idx[inside], uv[inside]
-    if len(idx) == 0:
-        return uv, np.zeros((0, 3))
-    # Facing the camera is not enough on a concave part: of the samples that
-    # land in one cell of a coarse depth buffer, only those near the nearest
-    # are seen. A cell is about three samples wide at the part's distance,
-    # so that few cells of a nearer surface are left without a sample of it
-    # (the samples are random, not a grid).
-    z = pts_cam[idx, 2]
-    cell_px = max(1.0, 3.0 * samples.spacing_mm * camera.fx / float(np.median(z)))
-    cells = (np.floor(uv[:, 1] / cell_px) * (camera.width / cell_px + 1)
-             + np.floor(uv[:, 0] / cell_px))
-    order = np.lexsort((z, cells))
-    sorted_cells = cells[order]
-    starts = np.flatnonzero(np.r_[True, sorted_cells[1:] != sorted_cells[:-1]])
-    nearest = np.repeat(z[order][starts], np.diff(np.r_[starts, len(order)]))
-    seen = order[z[order] <= nearest + 2.0 * samples.spacing_mm]
-    return uv[seen], normals_cam[idx[seen]]
-
-
-def _harmonics(normals: F64) -> F64:
-    """The first nine real spherical harmonics (unnormalised) of unit normals, (M, 9)."""
-    x, y, z = normals[:, 0], normals[:, 1], normals[:, 2]
-    return np.stack([np.ones_like(x), x, y, z, x * y, x * z, y * z, x * x - y * y,
-                     3.0 * z * z - 1.0], axis=1)
+    the camera sees at ``pose``: in front of it, facing it (cosine with the
+    ray above :data:`MIN_FACING_COS`), inside the image and, on a concave
+    part, not behind a nearer surface
+    (:func:`viewloc_core.shading_kernels.visible_samples`)."""
+    dist = np.zeros(8)
+    dist[:len(camera.dist)] = camera.dist
+    return shading_kernels.visible_samples(
+        samples.points_mm, samples.normals, np.ascontiguousarray(pose.R_m2c, np.float64),
+        np.ascontiguousarray(pose.t_m2c, np.float64),
+        np.array([camera.fx, camera.fy, camera.cx, camera.cy]), dist, camera.has_distortion,
+        camera.width, camera.height, samples.spacing_mm, MIN_FACING_COS)
 
 
 def shading_agreement(image: NDArray[np.generic], camera: Camera, pose: Pose,
@@ -211,26 +185,6 @@ def shading_agreement(image: NDArray[np.generic], camera: Camera, pose: Pose,
     uv, normals = visible_samples(samples, camera, pose)
     if len(uv) < MIN_VISIBLE:
         return None
-    intensity = intensity_at(image, uv)
-    basis = _harmonics(normals)
-    weights = np.ones(len(intensity))
-    residual = intensity - intensity.mean()
-    # The scale's floor is far below any image noise: it only keeps an exact
-    # fit (a synthetic image) from dividing by zero.
-    min_scale = 1e-9 * (1.0 + float(np.abs(intensity).max()))
-    for _ in range(_IRLS_PASSES):
-        # Normal equations (9 x 9): a few hundred samples make them cheap;
-        # least squares on them copes with a rank-deficient basis (a flat
-        # face shows one normal).
-        weighted = basis.T * weights
-        coef, *_ = np.linalg.lstsq(weighted @ basis, weighted @ intensity, rcond=None)
-        residual = intensity - basis @ coef
-        weights, _ = tukey_weights(residual, min_scale)
-    total_weight = float(weights.sum())
-    if total_weight <= 0.0:
-        return None
-    mean = float(weights @ intensity) / total_weight
-    spread = float(weights @ (intensity - mean) ** 2)
-    if spread <= 1e-9 * total_weight * max(1.0, mean * mean):
-        return None
-    return float(np.clip(1.0 - float(weights @ residual**2) / spread, 0.0, 1.0))
+    explained = shading_kernels.explained_variance(intensity_at(image, uv), normals,
+                                                   _IRLS_PASSES)
+    return None if math.isnan(explained) else explained
