@@ -21,6 +21,18 @@ from viewloc_core.view_sphere import subdivided_sphere
 
 CAM = Camera(600.0, 600.0, 319.5, 239.5, 640, 480)
 NO_SYMMETRY = Symmetries(np.eye(4)[None])
+LIGHTS = (Light("directional", direction_cam=(0.5, 0.6, 1.0), intensity=3.0),
+          Light("ambient", intensity=0.3))
+
+
+@pytest.fixture(scope="module")
+def egg_scene(renderer):
+    """The egg's surface samples, near-symmetries, contour model and render-ready mesh."""
+    mesh = blob()
+    contour = build_contour_model(mesh, subdivided_sphere(3)[0], renderer, 500.0, 512.0,
+                                  (160, 160))
+    return (surface_samples(mesh.vertices, mesh.faces), near_symmetries(mesh, NO_SYMMETRY),
+            contour, prepare(mesh))
 
 
 def test_an_egg_with_bumps_has_three_half_turns_and_a_bracket_none():
@@ -71,25 +83,18 @@ def test_a_twin_is_the_pose_applied_after_the_half_turn(seed, numbers):
     assert np.allclose(back.t_m2c, pose.t_m2c, atol=1e-8)
 
 
-def test_a_fit_stuck_at_a_half_turn_is_turned_back_by_its_twin(renderer):
+def test_a_fit_stuck_at_a_half_turn_is_turned_back_by_its_twin(renderer, egg_scene):
     # Why localize tries the twins: the egg turned half round still fits
     # much of the outline (42-86 % of the contour here; on the bench's
     # free-form part up to all of it), so a contour fit can settle there.
     # The twin of that fit starts next to the truth and refines onto it,
     # and contour and shading both rank it higher.
-    mesh = blob()
-    samples = surface_samples(mesh.vertices, mesh.faces)
-    near = near_symmetries(mesh, NO_SYMMETRY)
-    contour = build_contour_model(mesh, subdivided_sphere(3)[0], renderer, 500.0, 512.0,
-                                  (160, 160))
-    prepared = prepare(mesh)
-    lights = (Light("directional", direction_cam=(0.5, 0.6, 1.0), intensity=3.0),
-              Light("ambient", intensity=0.3))
+    samples, near, contour, prepared = egg_scene
     turned_back = 0
     for seed in range(6):
         truth = Pose(Rotation.random(random_state=200 + seed).as_matrix(),
                      np.array([30.0, -20.0, 600.0]))
-        image = renderer.render(prepared, CAM, truth, lights=lights,
+        image = renderer.render(prepared, CAM, truth, lights=LIGHTS,
                                 background_rgb=(30, 30, 30)).color
         edges = prepare_edges(image, 2)
         k = seed % len(near.transforms)
@@ -163,24 +168,17 @@ def test_a_reversal_mirrors_the_part_then_flips_depth_along_the_line_of_sight(se
     assert np.allclose(back.t_m2c, pose.t_m2c, atol=1e-6)
 
 
-def test_a_fit_stuck_at_a_depth_reversal_is_turned_back_by_its_reversal(renderer):
+def test_a_fit_stuck_at_a_depth_reversal_is_turned_back_by_its_reversal(renderer, egg_scene):
     # Why localize tries the reversals: the egg tilted the other way shows
     # the same outline, so a contour fit can settle there, and no half turn
     # leads back. The reversal of that fit starts next to the truth, and
     # contour and shading both rank it higher.
-    mesh = blob()
-    samples = surface_samples(mesh.vertices, mesh.faces)
-    near = near_symmetries(mesh, NO_SYMMETRY)
-    contour = build_contour_model(mesh, subdivided_sphere(3)[0], renderer, 500.0, 512.0,
-                                  (160, 160))
-    prepared = prepare(mesh)
-    lights = (Light("directional", direction_cam=(0.5, 0.6, 1.0), intensity=3.0),
-              Light("ambient", intensity=0.3))
+    samples, near, contour, prepared = egg_scene
     turned_back = ranked_higher = 0
     for seed in range(6):
         truth = Pose(Rotation.random(random_state=300 + seed).as_matrix(),
                      np.array([-40.0, 25.0, 600.0]))
-        image = renderer.render(prepared, CAM, truth, lights=lights,
+        image = renderer.render(prepared, CAM, truth, lights=LIGHTS,
                                 background_rgb=(30, 30, 30)).color
         edges = prepare_edges(image, 2)
         k = seed % len(near.mirrors)
