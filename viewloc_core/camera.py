@@ -68,6 +68,14 @@ class Camera:
         return any(c != 0.0 for c in self.dist)
 
     @property
+    def dist8(self) -> NDArray[np.float64]:
+        """The distortion coefficients zero-padded to OpenCV's 8, (8,) float64
+        (the form the compiled kernels take)."""
+        padded = np.zeros(8)
+        padded[:len(self.dist)] = self.dist
+        return padded
+
+    @property
     def focal_px(self) -> float:
         """Geometric mean focal length in pixels, the scale used for distances."""
         return math.sqrt(self.fx * self.fy)

@@ -139,12 +139,12 @@ NEAR_SYMMETRIC_VIEW_CANDIDATES = 12
 
 #: On a part with near-symmetries, the best this many short fits of the
 #: rival starts (by :meth:`_Shading.rank`) get the full fit: a short fit's
-#: rank says little about its full fit's (hard bench set, free-form part:
-#: the start that refined onto the truth was 3rd-6th by its short fit in
-#: images it was missed in). Hard bench set, models learned with seeds
+#: rank says little about its full fit's (hard bench set, free-form part,
+#: two images it was missed in: the starts that refined onto the truth were
+#: 3rd-8th by their short fits). Hard bench set, models learned with seeds
 #: 0/1/2, with the depth reversals: AR_MSSD 0.715, 0.688, 0.621 with 1;
 #: 0.725, 0.695, 0.634 with 2; 0.725, 0.720, 0.634 with 3 (pose stage
-#: +3 ms median over 1).
+#: +3 ms median over 1, before the shading agreement was compiled).
 NEAR_SYMMETRIC_FULL_FITS = 3
 
 #: Weight of the shading agreement (:mod:`viewloc_core.shading`, in [0, 1])
@@ -575,6 +575,8 @@ def _other_sides(
         tried.append(pose_c.R_m2c)
         quick = refine_pose(edges, camera, pose_c, contour, quick_options)
         quick_fits.append((shading.rank(camera, quick), view_c, sim_c, pose_c, quick.pose))
+    if not quick_fits:
+        return result, t_view, similarity, start
     quick_fits.sort(key=lambda f: -f[0])
     current = shading.rank(camera, result)
     # A quick fit stops on the coarse level, so its rank is not on the full

@@ -286,8 +286,7 @@ class _Projector:
         self._stacked: dict[int, Array] = {}
         self._intrinsics = np.array([camera.fx, camera.fy, camera.cx, camera.cy,
                                      camera.focal_px])
-        self._dist = np.zeros(8)
-        self._dist[:len(camera.dist)] = camera.dist
+        self._dist = camera.dist8
         self._distorted = camera.has_distortion
         self._windows: dict[float, Array] = {}
 

@@ -151,13 +151,11 @@ def visible_samples(samples: SurfaceSamples, camera: Camera, pose: Pose) -> tupl
     ray above :data:`MIN_FACING_COS`), inside the image and, on a concave
     part, not behind a nearer surface
     (:func:`viewloc_core.shading_kernels.visible_samples`)."""
-    dist = np.zeros(8)
-    dist[:len(camera.dist)] = camera.dist
     return shading_kernels.visible_samples(
         samples.points_mm, samples.normals, np.ascontiguousarray(pose.R_m2c, np.float64),
         np.ascontiguousarray(pose.t_m2c, np.float64),
-        np.array([camera.fx, camera.fy, camera.cx, camera.cy]), dist, camera.has_distortion,
-        camera.width, camera.height, samples.spacing_mm, MIN_FACING_COS)
+        np.array([camera.fx, camera.fy, camera.cx, camera.cy]), camera.dist8,
+        camera.has_distortion, camera.width, camera.height, samples.spacing_mm, MIN_FACING_COS)
 
 
 def shading_agreement(image: NDArray[np.generic], camera: Camera, pose: Pose,

@@ -94,9 +94,11 @@ def visible_samples(
         m += 1
     if m == 0:
         return uv[:0], normals_cam[:0]
-    # Facing the camera is not enough on a concave part: of the samples in
-    # one cell of a coarse depth buffer, only those near the nearest are seen
-    # (cells about three samples wide at the part's distance).
+    # Facing the camera is not enough on a concave part: of the samples that
+    # land in one cell of a coarse depth buffer, only those near the nearest
+    # are seen. A cell is about three samples wide at the part's distance,
+    # so that few cells of a nearer surface are left without a sample of it
+    # (the samples are random, not a grid).
     cell_px = max(1.0, 3.0 * spacing_mm * intrinsics[0] / np.median(z[:m]))
     cells = np.empty(m)
     for i in range(m):
