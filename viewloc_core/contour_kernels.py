@@ -23,9 +23,10 @@ F64 = NDArray[np.float64]
 
 
 @njit(cache=True, nogil=True)
-def _to_pixel(x: float, y: float, z: float, intrinsics: F64, dist: F64,
-              distorted: bool) -> tuple[float, float]:  # pragma: no cover - compiled
-    """Pixel of a camera-frame point (:meth:`viewloc_core.camera.Camera.project`)."""
+def to_pixel(x: float, y: float, z: float, intrinsics: F64, dist: F64,
+             distorted: bool) -> tuple[float, float]:  # pragma: no cover - compiled
+    """Pixel of a camera-frame point (:meth:`viewloc_core.camera.Camera.project`),
+    for the compiled kernels of the refinement and the shading."""
     u = x / z
     v = y / z
     if distorted:
@@ -94,8 +95,8 @@ def project_contour(
         sx = (R[0, 0] * qx + R[0, 1] * qy + R[0, 2] * qz) * step + x
         sy = (R[1, 0] * qx + R[1, 1] * qy + R[1, 2] * qz) * step + y
         sz = (R[2, 0] * qx + R[2, 1] * qy + R[2, 2] * qz) * step + z
-        u, v = _to_pixel(x, y, z, intrinsics, dist, distorted)
-        su, sv = _to_pixel(sx, sy, sz, intrinsics, dist, distorted)
+        u, v = to_pixel(x, y, z, intrinsics, dist, distorted)
+        su, sv = to_pixel(sx, sy, sz, intrinsics, dist, distorted)
         du = su - u
         dv = sv - v
         norm = math.sqrt(du * du + dv * dv)

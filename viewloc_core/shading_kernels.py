@@ -18,7 +18,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from viewloc_core.contour_kernels import _to_pixel
+from viewloc_core.contour_kernels import to_pixel
 from viewloc_core.robust import TUKEY_C
 
 F64 = NDArray[np.float64]
@@ -82,7 +82,7 @@ def visible_samples(
         norm = max(math.sqrt(x * x + y * y + zc * zc), 1e-12)
         if -(ncx * x + ncy * y + ncz * zc) / norm <= min_facing_cos:
             continue
-        u, v = _to_pixel(x, y, zc, intrinsics, dist, distorted)
+        u, v = to_pixel(x, y, zc, intrinsics, dist, distorted)
         if not (0.0 <= u <= width - 1 and 0.0 <= v <= height - 1):
             continue
         uv[m, 0] = u
@@ -122,7 +122,8 @@ def visible_samples(
 
 @njit(cache=True, nogil=True)
 def _tukey(residual: F64, min_scale: float) -> F64:  # pragma: no cover - compiled
-    """:func:`viewloc_core.robust.tukey_weights`'s weights."""
+    """:func:`viewloc_core.robust.tukey_weights`'s weights, compiled (the
+    kernel test checks the fit against the array form that calls it)."""
     mad = np.median(np.abs(residual - np.median(residual)))
     scale = max(1.4826 * mad, min_scale)
     u = residual / (TUKEY_C * scale)
