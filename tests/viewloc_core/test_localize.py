@@ -196,6 +196,55 @@ def test_a_near_symmetric_parts_best_other_start_gets_the_full_fit(bracket_model
                                               else (first_view, 0.90))
 
 
+@pytest.mark.parametrize("rounds", [1, 2])
+def test_a_winning_rivals_own_twin_is_tried_in_the_next_round(bracket_model, monkeypatch,
+                                                              rounds):
+    # The truth is the half turn of a runner-up view, which is not a twin of
+    # the first fit. Round one: the runner-up beats the first fit and its
+    # twin. Round two: the runner-up's own twin, the truth, beats it.
+    # Refinement leaves every pose where it is; the rank says how near a
+    # pose is to the truth or to the runner-up.
+    model = bracket_model
+    camera = Camera(600.0, 600.0, 319.5, 239.5, 640, 480)
+    tr = model.training
+    first_view = 0
+    other_view = next(v for v in range(len(tr.R_m2c))
+                      if rotation_angle_deg(tr.R_m2c[v], tr.R_m2c[first_view]) > 60.0)
+    sim = Similarity2D(320.0, 240.0, 0.0, 1.0)
+    half_turn = np.eye(4)
+    half_turn[:3, :3] = Rotation.from_rotvec([0.0, 0.0, np.pi]).as_matrix()
+    first_pose = _pose_centred(model, first_view, sim, camera)
+    runner_up = _pose_centred(model, other_view, sim, camera)
+    truth = NearSymmetries(half_turn[None], np.ones(1)).twins(runner_up)[0]
+
+    def refine(edges, camera_, start, contour, options):
+        return RefinementResult(start, True, 3, 0.5, 0.9)
+
+    class Shading:
+        near = NearSymmetries(half_turn[None], np.ones(1))
+
+        def rank(self, camera_, result):
+            R = result.pose.R_m2c
+            if rotation_angle_deg(R, truth.R_m2c) < 1.0:
+                return 1.0
+            return 0.8 if rotation_angle_deg(R, runner_up.R_m2c) < 1.0 else 0.5
+
+    monkeypatch.setattr(localize_module, "refine_pose", refine)
+    monkeypatch.setattr(localize_module, "OTHER_SIDE_ROUNDS", rounds)
+
+    def cand(view: int) -> ViewCandidate:
+        return ViewCandidate(view, np.array([320.0, 240.0, 0.0, 1.0]), 100.0, 0.9)
+
+    loc = _Located(Match2D(0, np.array([320.0, 240.0, 0.0, 1.0]), 0.0, 0.9, 10, 100.0),
+                   [cand(first_view), cand(other_view)])
+    first = RefinementResult(first_pose, True, 10, 0.5, 0.9)
+    result, view, _, _ = _other_sides(model, loc, 1.0, camera, None, None, Shading(),
+                                      first_view, sim, first_pose, first)
+    assert view == other_view
+    expected = truth if rounds == 2 else runner_up
+    assert rotation_angle_deg(result.pose.R_m2c, expected.R_m2c) < 1e-6
+
+
 def test_a_near_symmetric_part_gets_more_view_candidates(bracket_model):
     # An egg-like part's outline is nearly the same from several sides: its
     # rival views lie beyond the best few, so the view search returns more.
