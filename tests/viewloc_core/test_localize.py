@@ -153,6 +153,22 @@ def test_a_smooth_part_is_turned_the_right_way_by_its_shading(renderer, monkeypa
     assert with_shading >= right_way(0.0) + 3
 
 
+def _two_views_at_one_location(model):
+    """A camera, a location whose view search found training view 0 and,
+    second, a view over 60° from it, both at the image centre, and the
+    similarity that puts them there: (camera, first, other, sim, loc)."""
+    camera = Camera(600.0, 600.0, 319.5, 239.5, 640, 480)
+    tr = model.training
+    first_view = 0
+    other_view = next(v for v in range(len(tr.R_m2c))
+                      if rotation_angle_deg(tr.R_m2c[v], tr.R_m2c[first_view]) > 60.0)
+    sim = Similarity2D(320.0, 240.0, 0.0, 1.0)
+    sim_array = np.array([320.0, 240.0, 0.0, 1.0])
+    loc = _Located(Match2D(0, sim_array, 0.0, 0.9, 10, 100.0),
+                   [ViewCandidate(v, sim_array, 100.0, 0.9) for v in (first_view, other_view)])
+    return camera, first_view, other_view, sim, loc
+
+
 @pytest.mark.parametrize("near_symmetric", [True, False])
 def test_a_near_symmetric_parts_best_other_start_gets_the_full_fit(bracket_model, monkeypatch,
                                                                     near_symmetric):
@@ -163,12 +179,7 @@ def test_a_near_symmetric_parts_best_other_start_gets_the_full_fit(bracket_model
     # with near-symmetries gets the other start's full fit, and it wins; a
     # part without them keeps the first fit (its quick rival ranks lower).
     model = bracket_model
-    camera = Camera(600.0, 600.0, 319.5, 239.5, 640, 480)
-    tr = model.training
-    first_view = 0
-    other_view = next(v for v in range(len(tr.R_m2c))
-                      if rotation_angle_deg(tr.R_m2c[v], tr.R_m2c[first_view]) > 60.0)
-    sim = Similarity2D(320.0, 240.0, 0.0, 1.0)
+    camera, first_view, other_view, sim, loc = _two_views_at_one_location(model)
 
     def refine(edges, camera_, start, contour, options):
         quick = options is localize_module.QUICK_REFINE
@@ -183,11 +194,6 @@ def test_a_near_symmetric_parts_best_other_start_gets_the_full_fit(bracket_model
 
     monkeypatch.setattr(localize_module, "refine_pose", refine)
     monkeypatch.setattr(NearSymmetries, "twins", lambda self, pose: [])
-    def cand(view: int) -> ViewCandidate:
-        return ViewCandidate(view, np.array([320.0, 240.0, 0.0, 1.0]), 100.0, 0.9)
-
-    loc = _Located(Match2D(0, np.array([320.0, 240.0, 0.0, 1.0]), 0.0, 0.9, 10, 100.0),
-                   [cand(first_view), cand(other_view)])
     start = _pose_centred(model, first_view, sim, camera)
     first = RefinementResult(start, True, 10, 0.5, 0.90)
     result, view, _, _ = _other_sides(model, loc, 1.0, camera, None, None, Shading(),
@@ -205,12 +211,7 @@ def test_a_winning_rivals_own_twin_is_tried_in_the_next_round(bracket_model, mon
     # Refinement leaves every pose where it is; the rank says how near a
     # pose is to the truth or to the runner-up.
     model = bracket_model
-    camera = Camera(600.0, 600.0, 319.5, 239.5, 640, 480)
-    tr = model.training
-    first_view = 0
-    other_view = next(v for v in range(len(tr.R_m2c))
-                      if rotation_angle_deg(tr.R_m2c[v], tr.R_m2c[first_view]) > 60.0)
-    sim = Similarity2D(320.0, 240.0, 0.0, 1.0)
+    camera, first_view, other_view, sim, loc = _two_views_at_one_location(model)
     half_turn = np.eye(4)
     half_turn[:3, :3] = Rotation.from_rotvec([0.0, 0.0, np.pi]).as_matrix()
     first_pose = _pose_centred(model, first_view, sim, camera)
@@ -231,12 +232,6 @@ def test_a_winning_rivals_own_twin_is_tried_in_the_next_round(bracket_model, mon
 
     monkeypatch.setattr(localize_module, "refine_pose", refine)
     monkeypatch.setattr(localize_module, "OTHER_SIDE_ROUNDS", rounds)
-
-    def cand(view: int) -> ViewCandidate:
-        return ViewCandidate(view, np.array([320.0, 240.0, 0.0, 1.0]), 100.0, 0.9)
-
-    loc = _Located(Match2D(0, np.array([320.0, 240.0, 0.0, 1.0]), 0.0, 0.9, 10, 100.0),
-                   [cand(first_view), cand(other_view)])
     first = RefinementResult(first_pose, True, 10, 0.5, 0.9)
     result, view, _, _ = _other_sides(model, loc, 1.0, camera, None, None, Shading(),
                                       first_view, sim, first_pose, first)
