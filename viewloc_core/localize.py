@@ -47,6 +47,7 @@ from viewloc_core.align import (
 from viewloc_core.camera import Camera
 from viewloc_core.contour_model import ContourModel
 from viewloc_core.detection import Detection, Similarity2D
+from viewloc_core.edge_contrast import local_min_gradient
 from viewloc_core.edge_evidence import chance_rates
 from viewloc_core.errors import InvalidInputError
 from viewloc_core.features import (
@@ -99,6 +100,28 @@ QUICK_REFINE = RefineOptions(iterations=(0, 3), measure_chance=False, point_stri
 #: the twin turns about the part's centroid, whose image stays where the
 #: fit put it, so the search for a 2D shift is skipped.
 TWIN_REFINE = replace(QUICK_REFINE, shift_search_px=0.0)
+
+
+@dataclass(frozen=True, slots=True)
+class _FitOptions:
+    """The refinements of one location (full, quick and twin fits), all with
+    the weakest edge its surroundings call for (:mod:`viewloc_core.edge_contrast`),
+    so that the fits compared there count inliers alike."""
+
+    final: RefineOptions = FINAL_REFINE
+    quick: RefineOptions = QUICK_REFINE
+    twin: RefineOptions = TWIN_REFINE
+
+    @classmethod
+    def near(cls, edges: EdgePyramid, camera: Camera, pose: Pose,
+             diameter_mm: float) -> _FitOptions:
+        """The options for a part near ``pose`` (object centre in front of the camera)."""
+        z = float(pose.t_m2c[2])
+        centre = camera.project(pose.t_m2c[None])[0]
+        floor = local_min_gradient(edges, (float(centre[0]), float(centre[1])),
+                                   0.5 * camera.fx * diameter_mm / z, FINAL_REFINE.min_gradient)
+        return cls(*(replace(o, min_gradient=min(o.min_gradient, floor))
+                     for o in (FINAL_REFINE, QUICK_REFINE, TWIN_REFINE)))
 
 #: A refinement that confirms this share of the contour needs no other start
 #: (true poses: median 0.90, 10th percentile 0.79 on the paper set; fits
@@ -537,7 +560,7 @@ def _colour_locations(
 def _other_sides(
     model: ObjectModel, loc: _Located, factor: float, camera: Camera, edges: EdgePyramid,
     contour: ContourModel, shading: _Shading, t_view: int, similarity: Similarity2D,
-    start: Pose, result: RefinementResult,
+    start: Pose, result: RefinementResult, fit_options: _FitOptions,
 ) -> tuple[RefinementResult, int, Similarity2D, Pose]:
     """The fit of another of the location's candidate views, when its contour
     and shading together agree better with the image than ``result``'s.
@@ -566,7 +589,7 @@ def _other_sides(
     candidates = loc.candidates[1:]
     for _ in range(OTHER_SIDE_ROUNDS):
         winner = _best_rival(model, loc.evidence, candidates, factor, camera, edges, contour,
-                             shading, *chosen, tried)
+                             shading, *chosen, tried, fit_options)
         if winner[0] is chosen[0]:
             break
         chosen = winner
@@ -579,7 +602,7 @@ def _best_rival(
     model: ObjectModel, evidence: float, candidates: list[ViewCandidate], factor: float,
     camera: Camera, edges: EdgePyramid, contour: ContourModel, shading: _Shading,
     result: RefinementResult, t_view: int, similarity: Similarity2D, start: Pose,
-    tried: list[NDArray[np.float64]],
+    tried: list[NDArray[np.float64]], fit_options: _FitOptions,
 ) -> tuple[RefinementResult, int, Similarity2D, Pose]:
     """One round of :func:`_other_sides`: the fit of the rival start that
     ranks highest, or ``result`` (the same object) when none ranks higher.
@@ -601,11 +624,11 @@ def _best_rival(
             break  # best first
         sim_c = _to_full_resolution(cand.sim, factor)
         starts.append((cand.view, sim_c, _pose_centred(model, cand.view, sim_c, camera),
-                       QUICK_REFINE))
+                       fit_options.quick))
     # The fit turned by each near-symmetry, or mirrored and reversed in
     # depth, keeps the 2D match's view and similarity: no training view
     # shows it.
-    starts += [(t_view, similarity, twin, TWIN_REFINE)
+    starts += [(t_view, similarity, twin, fit_options.twin)
                for twin in shading.near.twins(result.pose) + shading.near.reversals(result.pose)]
     for view_c, sim_c, pose_c, quick_options in starts:
         if any(within_angle_deg(pose_c.R_m2c, R, sym, DISTINCT_VIEW_DEG) for R in tried):
@@ -630,7 +653,7 @@ def _best_rival(
     else:
         contenders = [f for f in quick_fits[:1] if f[0] > current]
     for _, view_c, sim_c, pose_c, quick_pose in contenders:
-        other = refine_pose(edges, camera, quick_pose, contour, FINAL_REFINE)
+        other = refine_pose(edges, camera, quick_pose, contour, fit_options.final)
         rank = shading.rank(camera, other)
         if rank > current:
             current, chosen = rank, (other, view_c, sim_c, pose_c)
@@ -640,7 +663,7 @@ def _best_rival(
 def _refit_from_other_starts(
     model: ObjectModel, loc: _Located, factor: float, camera: Camera, edges: EdgePyramid,
     contour: ContourModel, t_view: int, similarity: Similarity2D, start: Pose,
-    result: RefinementResult,
+    result: RefinementResult, fit_options: _FitOptions,
 ) -> tuple[RefinementResult, int, Similarity2D, Pose]:
     """A poor first refinement tried again from other starts; the better fit
     and its start (training view, similarity and the pose they give).
@@ -657,13 +680,13 @@ def _refit_from_other_starts(
     best_start: tuple[float, int, Similarity2D, Pose, Pose] | None = None
     for t_c, sim_c in starts:
         pose_c = _pose_centred(model, t_c, sim_c, camera)
-        quick = refine_pose(edges, camera, pose_c, contour, QUICK_REFINE)
+        quick = refine_pose(edges, camera, pose_c, contour, fit_options.quick)
         if best_start is None or _fit_rank(quick) > best_start[0]:
             best_start = (_fit_rank(quick), t_c, sim_c, pose_c, quick.pose)
         if _fit_rank(quick) >= GOOD_FIT_FRACTION:
             break
     if best_start is not None:
-        other = refine_pose(edges, camera, best_start[4], contour, FINAL_REFINE)
+        other = refine_pose(edges, camera, best_start[4], contour, fit_options.final)
         if _fit_rank(other) > _fit_rank(result):
             return other, best_start[1], best_start[2], best_start[3]
     return result, t_view, similarity, start
@@ -692,15 +715,16 @@ def _final_detection(
     pose_std = None
     chance_corrected = None
     if contour is not None and edges is not None:
-        result = refine_pose(edges, camera, pose_centred, contour, FINAL_REFINE)
+        fit_options = _FitOptions.near(edges, camera, pose_centred, model.diameter_mm)
+        result = refine_pose(edges, camera, pose_centred, contour, fit_options.final)
         if _fit_rank(result) < GOOD_FIT_FRACTION:
             result, t_view, similarity, pose_centred = _refit_from_other_starts(
                 model, loc, factor, camera, edges, contour, t_view, similarity, pose_centred,
-                result)
+                result, fit_options)
         if shading is not None and (len(loc.candidates) > 1 or len(shading.near.transforms)):
             result, t_view, similarity, pose_centred = _other_sides(
                 model, loc, factor, camera, edges, contour, shading, t_view, similarity,
-                pose_centred, result)
+                pose_centred, result, fit_options)
         # The depth from the 2D scale is uncertain by several %, the image
         # position much less: a refinement that wanders sideways in the
         # image has left the object (a wrong 2D match cannot be rescued

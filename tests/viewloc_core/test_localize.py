@@ -21,6 +21,7 @@ from viewloc_core.localize import (
     SPARE_MIN_CHANCE_CORRECTED,
     LocalizeOptions,
     _convincing,
+    _FitOptions,
     _Fitted,
     _Located,
     _other_sides,
@@ -61,6 +62,36 @@ def test_reference_point_is_the_image_of_the_mesh_origin(
     assert np.allclose(cam.project(det.pose.t_m2c[None])[0],
                        [det.similarity.x, det.similarity.y], atol=1e-6)
 
+
+
+def test_a_part_in_fog_is_found_as_in_clear_air(renderer, bracket_mesh, bracket_model,
+                                                monkeypatch):
+    # Fog scales every gradient by the share of light that gets through
+    # (here 0.1): the L-bracket's outline falls under a fixed edge floor,
+    # not under one that follows the contrast around it. Poses that are
+    # found in clear air (measured: 6 of 12 random poses with this coarse
+    # model); in fog, with the local floor 6, with the fixed one 0.
+    cam = Camera(560.0, 560.0, 319.5, 239.5, 640, 480)
+    scenes = []
+    for seed in (1, 6, 7, 8, 9, 11):
+        pose = Pose(Rotation.random(random_state=seed).as_matrix(),
+                    np.array([40.0 * (seed % 3 - 1), 30.0 * (seed % 2), 600.0]))
+        clear = render_scene(renderer, bracket_mesh, cam, pose, clutter=3, rng=seed)
+        fog = np.clip(0.1 * clear.astype(np.float32) + 0.9 * 215.0, 0, 255).astype(np.uint8)
+        scenes.append((fog, pose))
+
+    def found() -> int:
+        n = 0
+        for image, pose in scenes:
+            dets = localize(bracket_model, image, cam).detections
+            n += (bool(dets) and np.linalg.norm(dets[0].pose.t_m2c - pose.t_m2c) < 15.0
+                  and rotation_angle_deg(dets[0].pose.R_m2c, pose.R_m2c) < 5.0)
+        return n
+
+    assert found() >= 5
+    monkeypatch.setattr(localize_module, "local_min_gradient",
+                        lambda edges, centre, radius, ceiling: ceiling)
+    assert found() <= 1
 
 def _fit(score: float, refined: bool, tag: int, chance_corrected: float | None = None
          ) -> _Fitted:
@@ -197,7 +228,7 @@ def test_a_near_symmetric_parts_best_other_start_gets_the_full_fit(bracket_model
     start = _pose_centred(model, first_view, sim, camera)
     first = RefinementResult(start, True, 10, 0.5, 0.90)
     result, view, _, _ = _other_sides(model, loc, 1.0, camera, None, None, Shading(),
-                                      first_view, sim, start, first)
+                                      first_view, sim, start, first, _FitOptions())
     assert (view, result.inlier_fraction) == ((other_view, 0.95) if near_symmetric
                                               else (first_view, 0.90))
 
@@ -234,7 +265,7 @@ def test_a_winning_rivals_own_twin_is_tried_in_the_next_round(bracket_model, mon
     monkeypatch.setattr(localize_module, "OTHER_SIDE_ROUNDS", rounds)
     first = RefinementResult(first_pose, True, 10, 0.5, 0.9)
     result, view, _, _ = _other_sides(model, loc, 1.0, camera, None, None, Shading(),
-                                      first_view, sim, first_pose, first)
+                                      first_view, sim, first_pose, first, _FitOptions())
     assert view == other_view
     expected = truth if rounds == 2 else runner_up
     assert rotation_angle_deg(result.pose.R_m2c, expected.R_m2c) < 1e-6
