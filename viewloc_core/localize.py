@@ -101,28 +101,6 @@ QUICK_REFINE = RefineOptions(iterations=(0, 3), measure_chance=False, point_stri
 #: fit put it, so the search for a 2D shift is skipped.
 TWIN_REFINE = replace(QUICK_REFINE, shift_search_px=0.0)
 
-
-@dataclass(frozen=True, slots=True)
-class _FitOptions:
-    """The refinements of one location (full, quick and twin fits), all with
-    the weakest edge its surroundings call for (:mod:`viewloc_core.edge_contrast`),
-    so that the fits compared there count inliers alike."""
-
-    final: RefineOptions = FINAL_REFINE
-    quick: RefineOptions = QUICK_REFINE
-    twin: RefineOptions = TWIN_REFINE
-
-    @classmethod
-    def near(cls, edges: EdgePyramid, camera: Camera, pose: Pose,
-             diameter_mm: float) -> _FitOptions:
-        """The options for a part near ``pose`` (object centre in front of the camera)."""
-        z = float(pose.t_m2c[2])
-        centre = camera.project(pose.t_m2c[None])[0]
-        floor = local_min_gradient(edges, (float(centre[0]), float(centre[1])),
-                                   0.5 * camera.fx * diameter_mm / z, FINAL_REFINE.min_gradient)
-        return cls(*(replace(o, min_gradient=min(o.min_gradient, floor))
-                     for o in (FINAL_REFINE, QUICK_REFINE, TWIN_REFINE)))
-
 #: A refinement that confirms this share of the contour needs no other start
 #: (true poses: median 0.90, 10th percentile 0.79 on the paper set; fits
 #: stuck at a wrong depth 0.6-0.75).
@@ -388,6 +366,28 @@ def _pose_centred(
     return pose_from_similarity(
         similarity, model.training.R_m2c[t_view], model.d0_mm, model.f_train_px, camera
     )
+
+
+@dataclass(frozen=True, slots=True)
+class _FitOptions:
+    """The refinements of one location (full, quick and twin fits), all with
+    the weakest edge its surroundings call for (:mod:`viewloc_core.edge_contrast`),
+    so that the fits compared there count inliers alike."""
+
+    final: RefineOptions = FINAL_REFINE
+    quick: RefineOptions = QUICK_REFINE
+    twin: RefineOptions = TWIN_REFINE
+
+    @classmethod
+    def near(cls, edges: EdgePyramid, camera: Camera, pose: Pose,
+             diameter_mm: float) -> _FitOptions:
+        """The options for a part near ``pose`` (object centre in front of the camera)."""
+        z = float(pose.t_m2c[2])
+        centre = camera.project(pose.t_m2c[None])[0]
+        floor = local_min_gradient(edges, (float(centre[0]), float(centre[1])),
+                                   0.5 * camera.fx * diameter_mm / z, FINAL_REFINE.min_gradient)
+        return cls(*(replace(o, min_gradient=min(o.min_gradient, floor))
+                     for o in (FINAL_REFINE, QUICK_REFINE, TWIN_REFINE)))
 
 
 @dataclass(frozen=True, slots=True, eq=False)
