@@ -15,6 +15,9 @@ from viewloc_core.detection import Detection, Similarity2D
 from viewloc_core.learn import LearningConfig, learn_from_mesh
 from viewloc_core.localize import (
     COLOUR_WEIGHT,
+    FIGURE_GROUND_FULL,
+    FIGURE_GROUND_WEIGHT,
+    FIRST_FIT_MIN_FIGURE_GROUND,
     GOOD_FIT_FRACTION,
     MIN_COLOUR_AGREEMENT,
     MIN_COLOUR_RANK,
@@ -27,6 +30,7 @@ from viewloc_core.localize import (
     _other_sides,
     _pose_centred,
     _ranked,
+    _settled,
     _view_candidate_count,
     localize,
 )
@@ -151,6 +155,37 @@ def test_a_spare_location_competes_only_with_a_convincing_refinement() -> None:
     assert not _convincing(_fit(0.95, False, 0))
     assert not _convincing(_fit(0.90, True, 1, chance_corrected=SPARE_MIN_CHANCE_CORRECTED - 0.01))
     assert _convincing(_fit(0.75, True, 2, chance_corrected=SPARE_MIN_CHANCE_CORRECTED))
+
+
+def test_a_fit_that_stands_out_from_its_surroundings_outranks_a_shadow_like_one() -> None:
+    # Two confirmed outlines (the part, and its cast shadow a little better
+    # confirmed): the one whose inside differs in colour from its
+    # surroundings wins. Among unconfirmed fits the contrast adds to the
+    # chance-corrected fraction alike. A clearly better contour still wins.
+    shadow = replace(_fit(0.97, True, 0, chance_corrected=0.96), figure_ground=0.01)
+    part = replace(_fit(0.93, True, 1, chance_corrected=0.92), figure_ground=0.35)
+    assert [d.model_view for d in _ranked([shadow, part])] == [1, 0]
+    texture = replace(_fit(0.75, True, 2, chance_corrected=0.70), figure_ground=0.0)
+    faint = replace(_fit(0.72, True, 3, chance_corrected=0.65), figure_ground=0.2)
+    assert [d.model_view for d in _ranked([texture, faint])] == [3, 2]
+    better = replace(_fit(0.93 + FIGURE_GROUND_WEIGHT + 0.01, True, 4, chance_corrected=0.95),
+                     figure_ground=0.0)
+    assert [d.model_view for d in _ranked([part, better])] == [4, 1]
+    # A contrast beyond FIGURE_GROUND_FULL counts no more; none counts nothing.
+    full = replace(part, figure_ground=FIGURE_GROUND_FULL)
+    assert full.figure_ground_bonus == part.figure_ground_bonus == FIGURE_GROUND_WEIGHT
+    assert _fit(0.9, True, 5, chance_corrected=0.9).figure_ground_bonus == 0.0
+
+
+def test_a_confirmed_fit_that_looks_like_its_surroundings_gets_a_spare_beside_it() -> None:
+    assert _settled(replace(_fit(0.95, True, 0, chance_corrected=0.9),
+                            figure_ground=FIRST_FIT_MIN_FIGURE_GROUND))
+    assert not _settled(replace(_fit(0.95, True, 0, chance_corrected=0.9),
+                                figure_ground=FIRST_FIT_MIN_FIGURE_GROUND - 0.01))
+    # No colour (grey image, or no surface seen): the contour decides alone.
+    assert _settled(_fit(0.95, True, 0, chance_corrected=0.9))
+    assert not _settled(replace(_fit(GOOD_FIT_FRACTION - 0.01, True, 0, chance_corrected=0.8),
+                                figure_ground=0.5))
 
 
 def test_a_smooth_part_is_turned_the_right_way_by_its_shading(renderer, monkeypatch):
