@@ -666,7 +666,9 @@ def _best_rival(
     # depth, keeps the 2D match's view and similarity: no training view
     # shows it.
     starts += [(t_view, similarity, twin, fit_options.twin)
-               for twin in shading.near.twins(result.pose) + shading.near.reversals(result.pose)]
+               for twin in shading.near.twins(result.pose) + shading.near.reversals(result.pose)
+               + (shading.near.outline_turns(result.pose) if len(shading.near.transforms)
+                  else [])]
     for view_c, sim_c, pose_c, quick_options in starts:
         if any(within_angle_deg(pose_c.R_m2c, R, sym, DISTINCT_VIEW_DEG) for R in tried):
             continue

@@ -39,7 +39,13 @@ import trimesh
 from numpy.typing import NDArray
 
 from viewloc_core.pose import Pose, orthonormalize
-from viewloc_core.symmetry import Symmetries, near_half_turns, near_mirrors, surface_centroid
+from viewloc_core.symmetry import (
+    Symmetries,
+    near_half_turns,
+    near_mirrors,
+    surface_centroid,
+    surface_second_moment,
+)
 
 F64 = NDArray[np.float64]
 
@@ -69,6 +75,9 @@ class NearSymmetries:
     centre : (3,) float64
         The surface centroid, part frame, mm (where the depth reversal of
         :meth:`reversals` pivots).
+    moment : (3, 3) float64
+        The surface's second moment about ``centre``, part frame, mm²
+        (the outline's axes in :meth:`outline_turns`); zero when unknown.
     """
 
     transforms: F64
@@ -76,6 +85,7 @@ class NearSymmetries:
     mirrors: F64 = field(default_factory=lambda: np.zeros((0, 4, 4)))
     mirror_gap_mm: F64 = field(default_factory=lambda: np.zeros(0))
     centre: F64 = field(default_factory=lambda: np.zeros(3))
+    moment: F64 = field(default_factory=lambda: np.zeros((3, 3)))
 
     def twins(self, pose: Pose) -> list[Pose]:
         """The poses that show the part moved by each near-symmetry.
@@ -134,6 +144,53 @@ class NearSymmetries:
         return out
 
 
+    def outline_turns(self, pose: Pose) -> list[Pose]:
+        """The poses that show the part's outline as it is, turned over.
+
+        A nearly ellipsoidal part's outline is nearly symmetric about its
+        own two axes in the image, from any viewpoint. A half turn about
+        either, through the centroid's image ``p``, keeps the outline and
+        shows the part's other side, and so does a half turn about the line
+        of sight (the outline turned by 180° in the image). These axes
+        follow the view, not the part: no half turn about a principal axis
+        of the part reaches them unless one lies across the line of sight
+        (hard bench set, free-form part: most wrong poses 170-180° off the
+        truth were turned about an axis within 10° of the image plane).
+
+        The outline's axes are those of the part's second moment seen
+        along the line of sight ``r``: the eigenvectors of ``P R Σ Rᵀ P``
+        with ``P = I - r rᵀ`` (the outline of a weak-perspective view).
+
+        Parameters
+        ----------
+        pose : Pose
+            Part frame -> camera.
+
+        Returns
+        -------
+        list of Pose
+            The half turns about the outline's long axis, its short axis and
+            the line of sight, in that order; none without a moment or when
+            the centroid is at the camera centre.
+        """
+        R, t = pose.R_m2c, pose.t_m2c
+        p = R @ self.centre + t
+        distance = float(np.linalg.norm(p))
+        if distance == 0.0 or not np.any(self.moment):
+            return []
+        r = p / distance
+        across = np.eye(3) - np.outer(r, r)
+        seen = across @ R @ self.moment @ R.T @ across
+        _, vectors = np.linalg.eigh(seen)
+        # eigh sorts ascending: the last two span the image plane (the
+        # smallest, along r, is 0), long axis last.
+        out = []
+        for axis in (vectors[:, 2], vectors[:, 1], r):
+            H = 2.0 * np.outer(axis, axis) - np.eye(3)
+            out.append(Pose(orthonormalize(H @ R), H @ (t - p) + p))
+        return out
+
+
 def near_symmetries(mesh: trimesh.Trimesh, exact: Symmetries) -> NearSymmetries:
     """The half turns about the principal axes and the reflections through the
     centroid that nearly map the part onto itself.
@@ -151,4 +208,6 @@ def near_symmetries(mesh: trimesh.Trimesh, exact: Symmetries) -> NearSymmetries:
     """
     transforms, gaps = near_half_turns(mesh, exact, max_gap_frac=MAX_MEAN_GAP_SHARE)
     mirrors, mirror_gaps = near_mirrors(mesh, exact, max_gap_frac=MAX_MEAN_GAP_SHARE)
-    return NearSymmetries(transforms, gaps, mirrors, mirror_gaps, surface_centroid(mesh))
+    centre = surface_centroid(mesh)
+    return NearSymmetries(transforms, gaps, mirrors, mirror_gaps, centre,
+                          surface_second_moment(mesh, centre))

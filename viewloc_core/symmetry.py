@@ -186,6 +186,20 @@ def surface_centroid(mesh: trimesh.Trimesh) -> Array:
     return np.asarray(mesh.triangles_center.T @ mesh.area_faces / mesh.area, dtype=np.float64)
 
 
+def surface_second_moment(mesh: trimesh.Trimesh, centre: Array) -> Array:
+    """The surface's area-weighted second moment about ``centre``, (3, 3) mm².
+
+    Exact per triangle (A/12 (Σ v vᵀ + s sᵀ), s the vertex sum, vertices
+    relative to ``centre``), so that the principal axes of a symmetric part
+    are its symmetry axes to rounding.
+    """
+    tri = np.asarray(mesh.triangles, dtype=np.float64) - centre
+    vsum = tri.sum(axis=1)
+    moment = np.einsum("f,fij->ij", np.asarray(mesh.area_faces) / 12.0,
+                       np.einsum("fvi,fvj->fij", tri, tri) + np.einsum("fi,fj->fij", vsum, vsum))
+    return np.asarray(moment / float(mesh.area), dtype=np.float64)
+
+
 def _centroid_and_diagonal(mesh: trimesh.Trimesh) -> tuple[Array, float]:
     """The surface centroid ((3,) mm) and the bounding-box diagonal (mm), the
     size tolerances are relative to."""
@@ -194,14 +208,7 @@ def _centroid_and_diagonal(mesh: trimesh.Trimesh) -> tuple[Array, float]:
 
 def _candidate_axes(mesh: trimesh.Trimesh, centre: Array) -> tuple[list[Array], Array, Array]:
     """Candidate axes (unit, deduplicated), principal axes and their eigenvalues."""
-    # Exact area-weighted second moment of the surface about the centroid
-    # (per triangle: A/12 (Σ v vᵀ + s sᵀ) with s the vertex sum), so that the
-    # principal axes of a symmetric part are its symmetry axes to rounding.
-    tri = np.asarray(mesh.triangles, dtype=np.float64) - centre
-    vsum = tri.sum(axis=1)
-    moment = np.einsum("f,fij->ij", np.asarray(mesh.area_faces) / 12.0,
-                       np.einsum("fvi,fvj->fij", tri, tri) + np.einsum("fi,fj->fij", vsum, vsum))
-    evals, evecs = np.linalg.eigh(moment / float(mesh.area))
+    evals, evecs = np.linalg.eigh(surface_second_moment(mesh, centre))
     axes: list[Array] = []
 
     def add(vec: NDArray[np.floating]) -> None:
