@@ -114,10 +114,11 @@ SPARE_EVIDENCE_SHARE = 0.5
 #: The alignment proposes at least this many locations (more when more
 #: detections are wanted: twice as many plus one) for the view search,
 #: whose evidence, not the alignment's, ranks them. The alignment's order is
-#: the rougher one: hard bench set, learning seeds 0/1/2, at least 5 instead
-#: of 3: AR_MSSD 0.8025/0.744/0.675 -> 0.79/0.75/0.7125, rec2D
-#: 0.94/0.85/0.85 -> 0.925/0.85/0.875 (at least 7: no further gain).
-MIN_ALIGNED_LOCATIONS = 5
+#: the rougher one. Hard bench set, learning seeds 0/1/2 (with the outline
+#: turns), at least 3 / 4 / 5: AR_MSSD 0.84/0.769/0.669, 0.84/0.775/0.706,
+#: 0.8275/0.775/0.706; each location costs about 1.5 ms (view search and
+#: alignment extension).
+MIN_ALIGNED_LOCATIONS = 4
 
 #: A spare location's fit (see ``localize``) competes with the first ones only
 #: when its refinement confirms at least this share of the contour beyond
