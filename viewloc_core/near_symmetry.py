@@ -87,6 +87,15 @@ class NearSymmetries:
     centre: F64 = field(default_factory=lambda: np.zeros(3))
     moment: F64 = field(default_factory=lambda: np.zeros((3, 3)))
 
+    def _line_of_sight(self, pose: Pose) -> tuple[F64, F64] | None:
+        """The centroid ``p`` in the camera frame (mm) and the unit ray
+        ``r = p / |p|`` to it, or None when it is at the camera centre."""
+        p = pose.R_m2c @ self.centre + pose.t_m2c
+        distance = float(np.linalg.norm(p))
+        if distance == 0.0:
+            return None
+        return p, p / distance
+
     def twins(self, pose: Pose) -> list[Pose]:
         """The poses that show the part moved by each near-symmetry.
 
@@ -128,12 +137,11 @@ class NearSymmetries:
             One per reflection in ``mirrors``, in order; none when the
             centroid is at the camera centre.
         """
-        R, t = pose.R_m2c, pose.t_m2c
-        p = R @ self.centre + t
-        distance = float(np.linalg.norm(p))
-        if distance == 0.0:
+        sight = self._line_of_sight(pose)
+        if sight is None:
             return []
-        r = p / distance
+        p, r = sight
+        R, t = pose.R_m2c, pose.t_m2c
         S = np.eye(3) - 2.0 * np.outer(r, r)
         out = []
         for M in self.mirrors:
@@ -173,12 +181,11 @@ class NearSymmetries:
             the line of sight, in that order; none without a moment or when
             the centroid is at the camera centre.
         """
-        R, t = pose.R_m2c, pose.t_m2c
-        p = R @ self.centre + t
-        distance = float(np.linalg.norm(p))
-        if distance == 0.0 or not np.any(self.moment):
+        sight = self._line_of_sight(pose)
+        if sight is None or not np.any(self.moment):
             return []
-        r = p / distance
+        p, r = sight
+        R, t = pose.R_m2c, pose.t_m2c
         across = np.eye(3) - np.outer(r, r)
         seen = across @ R @ self.moment @ R.T @ across
         _, vectors = np.linalg.eigh(seen)
