@@ -84,17 +84,25 @@ def _ring_pixels(camera: Camera, pose: Pose, samples: SurfaceSamples,
     z = points[:, 2]
     if len(points) == 0 or float(z.min()) <= 0.0:
         return None
-    uv = camera.project(points)
-    diameter_px = camera.fx * samples.extent_mm / float(np.median(z))
+    height, width_img = rgb.shape[:2]
+    depth = float(np.median(z))
+    diameter_px = camera.fx * samples.extent_mm / depth
+    if diameter_px > 2 * max(height, width_img):
+        return None  # the part would fill the view: no surroundings to compare
     gap = max(2, round(RING_GAP_SHARE * diameter_px))
     width = max(3, round(RING_WIDTH_SHARE * diameter_px))
     # The samples are spacing_mm apart on the surface: discs that wide
     # join into the silhouette.
-    dot = max(1, round(camera.fx * samples.spacing_mm / float(z.min())))
+    dot = max(1, round(camera.fx * samples.spacing_mm / depth))
     margin = gap + width + dot + 1
+    uv = camera.project(points)
+    # The box around the projected part, no larger than the image and the
+    # ring beside it (a sample projected far outside counts at its edge).
+    lo = np.array([-margin, -margin])
+    hi = np.array([width_img + margin, height + margin])
+    uv = np.clip(np.nan_to_num(uv, nan=-margin), lo, hi)
     x0, y0 = np.floor(uv.min(axis=0)).astype(int) - margin
     x1, y1 = np.ceil(uv.max(axis=0)).astype(int) + margin + 1
-    height, width_img = rgb.shape[:2]
     if x1 <= 0 or y1 <= 0 or x0 >= width_img or y0 >= height:
         return None
     mask = np.zeros((y1 - y0, x1 - x0), np.uint8)

@@ -76,3 +76,14 @@ def test_grey_images_and_unseen_parts_give_no_contrast(scene):
     assert figure_ground_contrast(image, CAM, beside, samples) is None
     behind = Pose(pose.R_m2c, np.array([0.0, 0.0, -450.0]))
     assert figure_ground_contrast(image, CAM, behind, samples) is None
+
+
+def test_a_part_almost_at_the_lens_gives_no_contrast_or_a_bounded_one(scene):
+    # A diverged fit may put the part almost at the camera: the ring is then
+    # sized from the image, not from the projection, so it costs no more.
+    samples, pose, mask, ground, part = scene
+    image = _with_part(ground, mask, part)
+    for depth_mm in (60.0, 90.0, 200.0):
+        near = Pose(pose.R_m2c, np.array([0.0, 0.0, depth_mm]))
+        contrast = figure_ground_contrast(image, CAM, near, samples)
+        assert contrast is None or 0.0 <= contrast <= 1.0
