@@ -15,7 +15,9 @@ views. Localization back-projects the posterior P(part | colour) against the
 scene's own colour distribution (Swain and Ballard's histogram
 back-projection, ratio form), proposes the windows whose summed log ratio is
 largest, and scores a fitted pose by the mean posterior under the surface
-points it shows.
+points it shows, which is compared with the mean posterior the part's own
+colours get in that scene: a part of rare colours shows nearly 1, one of
+colours common around it (dark, grey) about 0.5 however well it is fitted.
 
 Chromaticity (r, g) = (R, G) / (R + G + B) is unchanged by the brightness of
 the light and by shading, which move a part's colours most; dark pixels,
@@ -197,8 +199,10 @@ def _is_grey(rgb: NDArray[np.uint8]) -> bool:
     return bool(np.mean(spread > GREY_CHANNEL_SPREAD) < MIN_COLOURED_SHARE)
 
 
-def log_ratio_map(image: NDArray[np.generic], histogram: F32) -> F32 | None:
-    """Per-pixel log likelihood ratio, part against scene, of each pixel's colour.
+def bin_log_ratios(image: NDArray[np.generic], histogram: F32,
+                   ) -> tuple[NDArray[np.int32], F32] | None:
+    """Each pixel's colour bin, and each bin's log likelihood ratio part
+    against scene.
 
     Parameters
     ----------
@@ -209,11 +213,11 @@ def log_ratio_map(image: NDArray[np.generic], histogram: F32) -> F32 | None:
 
     Returns
     -------
-    (H, W) float32 or None
-        ``log P(colour | part) - log P(colour | scene)`` clipped to
-        :data:`LOG_RATIO_RANGE`; the scene's distribution is the image's
-        own (the part covers a small share of it). None for a grey or float
-        image, or a grey one stored as RGB.
+    ((H, W) int32, (N_BINS,) float32) or None
+        The bins, and ``log P(colour | part) - log P(colour | scene)`` per
+        bin clipped to :data:`LOG_RATIO_RANGE`; the scene's distribution is
+        the image's own (the part covers a small share of it). None for a
+        grey or float image, or a grey one stored as RGB.
     """
     rgb = _rgb_uint8(image)
     if rgb is None or _is_grey(rgb):
@@ -226,7 +230,44 @@ def log_ratio_map(image: NDArray[np.generic], histogram: F32) -> F32 | None:
     ratio = (np.log(np.maximum(part, PROBABILITY_FLOOR))
              - np.log(np.maximum(scene, PROBABILITY_FLOOR)))
     lo, hi = LOG_RATIO_RANGE
-    return np.clip(ratio, lo, hi).astype(np.float32)[bins]
+    return bins, np.clip(ratio, lo, hi).astype(np.float32)
+
+
+def log_ratio_map(image: NDArray[np.generic], histogram: F32) -> F32 | None:
+    """Per-pixel log likelihood ratio, part against scene, of each pixel's
+    colour (:func:`bin_log_ratios` looked up per pixel), (H, W) float32 or
+    None for a grey or float image."""
+    binned = bin_log_ratios(image, histogram)
+    if binned is None:
+        return None
+    bins, ratio = binned
+    return ratio[bins]
+
+
+def expected_agreement(histogram: F32, ratio: F32) -> float:
+    """The mean posterior P(part | colour) the part's own colours get in a
+    scene: what :func:`agreement` gives the part itself when it shows its
+    training colours.
+
+    A part of distinctive colours gets nearly 1; one whose colours are
+    common in the scene (dark, grey) about 0.5 or less, however well a pose
+    covers it. Dividing an agreement by it puts parts and scenes on one
+    scale.
+
+    Parameters
+    ----------
+    histogram : (N_BINS,) float32
+        The part's colour model.
+    ratio : (N_BINS,) float32
+        The scene's per-bin log ratios (:func:`bin_log_ratios`).
+
+    Returns
+    -------
+    float in (0, 1)
+    """
+    part = np.asarray(histogram, np.float64)
+    weights = part / max(float(part.sum()), 1e-12)
+    return float(np.dot(weights, posterior(ratio).astype(np.float64)))
 
 
 def posterior(log_ratio: F32) -> F32:

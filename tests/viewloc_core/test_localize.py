@@ -127,26 +127,46 @@ def test_confirmed_fits_rank_first_then_refined_by_chance_then_the_view_search_o
     assert GOOD_FIT_FRACTION <= 0.88
 
 
+def _coloured(fit: _Fitted, agreement: float | None, expected: float = 0.8) -> _Fitted:
+    """``fit`` with a colour agreement, in a scene where the part's own
+    colours get ``expected``."""
+    return replace(fit, colour_agreement=agreement, expected_colour_agreement=expected)
+
+
 def test_with_a_colour_cue_fits_rank_by_contour_plus_colour_and_off_colour_fits_drop() -> None:
     # A wrong place confirms its contour as well as the right one (real
     # photos in clutter); the colour under the fit decides, and a fit on
     # colours that are not the part's is not reported at all.
     fits = [
-        replace(_fit(0.93, True, 0, chance_corrected=0.9), colour_agreement=0.50),
-        replace(_fit(0.80, True, 1, chance_corrected=0.6), colour_agreement=0.85),
-        replace(_fit(0.97, True, 2, chance_corrected=0.95),
-                colour_agreement=MIN_COLOUR_AGREEMENT - 0.01),
-        replace(_fit(0.70, False, 3), colour_agreement=0.9),
+        _coloured(_fit(0.93, True, 0, chance_corrected=0.9), 0.60),
+        _coloured(_fit(0.80, True, 1, chance_corrected=0.6), 0.85),
+        _coloured(_fit(0.97, True, 2, chance_corrected=0.95), MIN_COLOUR_AGREEMENT - 0.01),
+        _coloured(_fit(0.70, False, 3), 0.9),
         _fit(0.99, True, 4, chance_corrected=0.99),  # no colour measured
         # Colour enough on its own, but with too little contour confirmed.
-        replace(_fit(0.60, True, 5, chance_corrected=0.5), colour_agreement=0.7),
+        _coloured(_fit(0.60, True, 5, chance_corrected=0.5), 0.7),
     ]
     ranked = _ranked(fits, by_colour=True)
     assert [d.model_view for d in ranked] == [1, 0, 3]
     assert COLOUR_WEIGHT > 0
-    assert 0.60 + COLOUR_WEIGHT * 0.7 < MIN_COLOUR_RANK <= 0.93 + COLOUR_WEIGHT * 0.5
+    assert 0.60 + COLOUR_WEIGHT * 0.7 / 0.8 < MIN_COLOUR_RANK <= 0.93 + COLOUR_WEIGHT * 0.6 / 0.8
     # Without the cue the colour is ignored.
     assert [d.model_view for d in _ranked(fits)][:2] == [4, 2]
+
+
+def test_a_fits_colour_counts_against_what_the_parts_own_colours_get_in_the_scene() -> None:
+    # The same fit, covering the same colours: where the part's colours are
+    # common in the scene (a grey can among grey things) they are all a
+    # right fit can show, and it is reported; where they are rare, a fit
+    # showing that little of them is a look-alike and is dropped.
+    fit = _fit(0.80, True, 0, chance_corrected=0.7)
+    assert [d.model_view for d in _ranked([_coloured(fit, 0.55, expected=0.55)],
+                                          by_colour=True)] == [0]
+    assert _ranked([_coloured(fit, 0.55, expected=0.92)], by_colour=True) == []
+    # Fits of one scene still rank by their colour.
+    other = _fit(0.80, True, 1, chance_corrected=0.7)
+    ranked = _ranked([_coloured(fit, 0.5, 0.55), _coloured(other, 0.6, 0.55)], by_colour=True)
+    assert [d.model_view for d in ranked] == [1, 0]
 
 
 def test_a_spare_location_competes_only_with_a_convincing_refinement() -> None:

@@ -82,6 +82,25 @@ def test_back_projection_is_positive_on_the_part_and_negative_around_it() -> Non
     assert pc.log_ratio_map(img.astype(np.uint16) * 257, hist) == pytest.approx(ratio)
 
 
+def test_the_expected_agreement_is_high_for_a_rare_colour_and_low_for_a_common_one() -> None:
+    # What the part itself would score depends on the scene: a small orange
+    # patch among grey is nearly certain to be the part, a scene half
+    # orange makes orange no evidence either way.
+    hist = _histogram_of(ORANGE)
+    rare = pc.bin_log_ratios(_scene_with_patch(ORANGE, (250, 120), 12), hist)
+    common = _scene_with_patch(ORANGE, (250, 120), 12)
+    common[:, :200] = ORANGE
+    common_ratios = pc.bin_log_ratios(common, hist)
+    assert rare is not None and common_ratios is not None
+    e_rare = pc.expected_agreement(hist, rare[1])
+    e_common = pc.expected_agreement(hist, common_ratios[1])
+    assert e_rare > 0.9
+    assert 0.3 < e_common < 0.7
+    # It is what the part's own pixels get, on average.
+    post = pc.posterior(rare[1][rare[0]])
+    assert float(post[110:131, 240:261].mean()) == pytest.approx(e_rare, abs=0.05)
+
+
 def test_the_best_window_is_the_part_with_about_its_size() -> None:
     hist = _histogram_of(ORANGE)
     img = _scene_with_patch(ORANGE, (250, 120), 16)
