@@ -7,6 +7,7 @@ import pytest
 from viewloc_core.camera import Camera
 from viewloc_core.contour_model import ContourModel
 from viewloc_core.errors import Cancelled, InvalidInputError
+from viewloc_core.features import FeatureConfig, extract_features
 from viewloc_core.learn import (
     CONTOUR_FACE_RENDERS,
     LearningConfig,
@@ -16,6 +17,7 @@ from viewloc_core.learn import (
     contour_view_level,
     learn_from_images,
     learn_from_mesh,
+    outline_hidden_on_black,
 )
 from viewloc_core.model import model_to_arrays
 from viewloc_core.pose import Pose
@@ -143,3 +145,75 @@ def test_photos_with_non_square_pixels_and_distortion_warp_like_ideal_ones(rende
     assert np.abs(got - want)[lit].mean() < 4.0
     # Ignoring the lens would not do: the real photo read as if ideal.
     assert np.abs(canonical(photo_real, ideal) - want)[lit].mean() > 15.0
+
+
+def _disc(grey: int) -> tuple[np.ndarray, np.ndarray]:
+    """A 60 px disc of one grey level over black, and its mask."""
+    mask = np.zeros((120, 120), np.uint8)
+    cv2.circle(mask, (60, 60), 30, 1, -1)
+    image = np.zeros((120, 120, 3), np.uint8)
+    image[mask > 0] = grey
+    return image, mask > 0
+
+
+def test_only_a_dark_outline_counts_as_hidden_on_black():
+    assert outline_hidden_on_black(*_disc(25))
+    assert not outline_hidden_on_black(*_disc(90))
+    # A dark rim around a bright part is what the features see over black.
+    image, mask = _disc(200)
+    rim = mask & ~cv2.erode(mask.astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool)
+    image[rim] = 20
+    assert outline_hidden_on_black(image, mask)
+    assert not outline_hidden_on_black(np.zeros((40, 40, 3), np.uint8), np.zeros((40, 40), bool))
+
+
+def _outline_share(features_xy: np.ndarray, mask: np.ndarray) -> float:
+    """Share of the edge samples within 1.5 px of the mask's outline."""
+    outline = mask & ~cv2.erode(mask.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    distance = cv2.distanceTransform((~outline).astype(np.uint8), cv2.DIST_L2, 3)
+    xy = np.rint(features_xy).astype(int)
+    return float((distance[xy[:, 1], xy[:, 0]] <= 1.5).mean())
+
+
+def test_a_dark_part_is_learned_from_its_outline(bracket_mesh, monkeypatch):
+    # A black bracket with a bright rib (as a drill has its chuck) over
+    # black: the rib's edges set the scale of the training view's edge map,
+    # the faint black outline ranks with the texture inside, and the
+    # templates hold as much of the inside as of the outline, although any
+    # real background shows the outline best. Over white it stands out.
+    dark = bracket_mesh.copy()
+    colours = np.tile([25, 25, 28, 255], (len(dark.vertices), 1)).astype(np.uint8)
+    colours[-8:, :3] = 230  # the rib, the last of the three boxes
+    dark.visual.vertex_colors = colours
+    import viewloc_core.learn as learn_module
+
+    seen: list[tuple[np.ndarray, np.ndarray]] = []
+    sample = learn_module._sample_from_image
+
+    def capture(image, mask, *args):
+        seen.append((image, mask))
+        return sample(image, mask, *args)
+
+    def outline_share() -> float:
+        return float(np.median([
+            _outline_share(extract_features(image, FeatureConfig(), mask=mask).edge_xy, mask)
+            for image, mask in seen]))
+
+    monkeypatch.setattr(learn_module, "_sample_from_image", capture)
+    model = learn_from_mesh(dark, LearningConfig(max_level=0, min_level=0))
+    assert model.colour_histogram is not None
+    assert len(seen) == 12
+    assert all((image[~mask] == 255).mean() > 0.99 for image, mask in seen)
+    over_white = outline_share()
+    # The same views over black (measured: 0.73 of the edges on the
+    # outline, 0.87 over white).
+    seen.clear()
+    monkeypatch.setattr(learn_module, "DARK_OUTLINE_LEVEL", 0.0)
+    learn_from_mesh(dark, LearningConfig(max_level=0, min_level=0))
+    assert over_white > 0.8 > outline_share() + 0.05
+    # A part of ordinary brightness keeps black.
+    monkeypatch.undo()
+    monkeypatch.setattr(learn_module, "_sample_from_image", capture)
+    seen.clear()
+    learn_from_mesh(bracket_mesh, LearningConfig(max_level=0, min_level=0))
+    assert all((image[~mask] == 0).mean() > 0.99 for image, mask in seen)
