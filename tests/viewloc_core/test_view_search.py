@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from tests.viewloc_core.conftest import render_scene
+from viewloc_core import view_search
 from viewloc_core.camera import Camera
 from viewloc_core.edge_evidence import chance_rates
 from viewloc_core.features import ORIENTATION_BINS, extract_features
@@ -185,3 +186,41 @@ def test_offsets_find_a_view_whose_seed_is_off_by_more_than_the_spread(
             errors[kind].append(np.hypot(*(found[0].sim[:2] - sim_true[:2])) if found else 1e9)
     assert max(errors["offsets"]) < 2.0
     assert max(errors["plain"]) > 4.0
+
+
+def test_a_large_screen_is_prescreened_on_fewer_samples(
+        renderer, bracket_mesh, bracket_model, monkeypatch):
+    """Every angle and scale at 9 offsets around a location (as the colour
+    locations search) is over PRESCREEN_MIN_PAIRS pairs: the pairs a screen on
+    PRESCREEN_POINTS samples ranks best get the full score, and the search
+    ends where the full screen of every pair ends."""
+    model = bracket_model
+    templates = view_templates(model)
+    offsets = 6.0 * np.array([(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1)], float)
+    for t_view, angle in ((3, 30.0), (17, -100.0), (40, 60.0)):
+        image, sim_true, _ = _scene(renderer, bracket_mesh, model, t_view, angle, clutter=3)
+        feats = extract_features(image)
+        chance = chance_rates(feats)
+        seeds = np.array([[sim_true[0] + 4.0, sim_true[1] - 3.0, np.radians(a), sim_true[3] * f]
+                          for f in (0.9, 1.0, 1.1) for a in range(0, 360, 15)])
+        pairs = len(seeds) * len(offsets) * len(templates)
+        assert pairs > view_search.PRESCREEN_MIN_PAIRS
+
+        shifted = view_search._shifted(seeds, offsets)
+        views = np.tile(np.arange(len(templates)), len(shifted))
+        sims = np.repeat(shifted, len(templates), axis=0)
+        screened = view_search._screen(feats, templates, views, sims, chance)
+        full = view_search._score_coarse(feats, templates, views, sims, chance)
+        kept = np.isfinite(screened)
+        assert kept.sum() == int(view_search.PRESCREEN_KEPT * len(views))
+        np.testing.assert_array_equal(screened[kept], full[kept])
+        # The best pairs of the full screen are among those kept.
+        top = np.argsort(-full)[:20]
+        assert kept[top[0]] and kept[top].sum() >= 16
+
+        prescreened = search_views(feats, templates, seeds, chance, 6, offsets, 24, (0.0,))[0]
+        with monkeypatch.context() as patch:
+            patch.setattr(view_search, "PRESCREEN_MIN_PAIRS", 10**9)
+            full_best = search_views(feats, templates, seeds, chance, 6, offsets, 24, (0.0,))[0]
+        assert np.hypot(*(prescreened.sim[:2] - sim_true[:2])) < 2.0
+        assert prescreened.log_likelihood_ratio >= 0.97 * full_best.log_likelihood_ratio
