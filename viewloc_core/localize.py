@@ -232,6 +232,10 @@ COLOUR_OFFSET_SHARE = 0.1
 COLOUR_KEPT_SEEDS = 24
 COLOUR_SCREEN_ANGLES_DEG = (0.0,)
 
+#: A colour location whose best view explains the edges there no better
+#: than clutter does (log likelihood ratio at most this) is not fitted.
+COLOUR_MIN_EVIDENCE = 0.0
+
 #: Weight of the relative colour agreement (mean P(part | colour) under
 #: the fit's visible surface over what the part's own colours get in the
 #: scene, about 1 on the part; :attr:`_Fitted.relative_colour`) beside the
@@ -607,6 +611,8 @@ def _colour_locations(
         if not candidates:
             continue
         best = candidates[0]
+        if best.log_likelihood_ratio <= COLOUR_MIN_EVIDENCE:
+            continue
         reach = 0.25 * best.sim[3] * _train_diameter_px(model)
         if any(np.hypot(*(best.sim[:2] - loc.candidates[0].sim[:2])) < reach
                for loc in taken + out):

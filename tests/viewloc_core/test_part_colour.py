@@ -201,3 +201,51 @@ def test_the_part_is_told_from_a_look_alike_of_another_colour(orange_model, rend
                             anything).detections
     assert with_hist and [d.pose.t_m2c.tolist() for d in with_hist] == [
         d.pose.t_m2c.tolist() for d in without_hist]
+
+
+def test_a_colour_location_explained_no_better_than_clutter_is_not_fitted(
+        orange_model, monkeypatch):
+    """An orange disc in grey clutter draws the colour proposals; whether it
+    is handed on to be fitted depends on the evidence of its best view
+    (COLOUR_MIN_EVIDENCE): here the views' likelihood ratios are shifted to
+    put the best one just under and just over the bar."""
+    import viewloc_core.localize as localize_module
+    from viewloc_core.align import AlignConfig
+    from viewloc_core.edge_evidence import chance_rates
+    from viewloc_core.features import extract_features
+    from viewloc_core.view_search import view_templates
+
+    gen = np.random.default_rng(0)
+    image = np.full((300, 400, 3), 120, np.uint8)
+    for _ in range(900):  # dense grey clutter: edges of every orientation
+        x, y = gen.integers(0, [400, 300])
+        w, h = gen.integers(4, 30, 2)
+        image[y:y + h, x:x + w] = gen.integers(40, 220)
+    yy, xx = np.mgrid[:300, :400]
+    image[(xx - 200) ** 2 + (yy - 150) ** 2 < 40 ** 2] = ORANGE
+    colour = localize_module._ColourScene.of(orange_model, image, 1.0)
+    assert colour is not None
+    feats = extract_features(image)
+    search = localize_module.search_views
+
+    def located(shift: float) -> list:
+        def shifted(*args, **kwargs):
+            return [replace(c, log_likelihood_ratio=c.log_likelihood_ratio + shift)
+                    for c in search(*args, **kwargs)]
+
+        with monkeypatch.context() as patch:
+            patch.setattr(localize_module, "search_views", shifted)
+            return localize_module._colour_locations(
+                orange_model, colour, feats, view_templates(orange_model),
+                chance_rates(feats), AlignConfig(), [])
+
+    everything = located(0.0)
+    near = [loc for loc in everything
+            if np.hypot(*(loc.candidates[0].sim[:2] - [200.0, 150.0])) < 40]
+    assert near
+    best = near[0].candidates[0].log_likelihood_ratio
+    bar = localize_module.COLOUR_MIN_EVIDENCE
+    assert not [loc for loc in located(bar - best)
+                if np.hypot(*(loc.candidates[0].sim[:2] - [200.0, 150.0])) < 40]
+    assert [loc for loc in located(bar - best + 1.0)
+            if np.hypot(*(loc.candidates[0].sim[:2] - [200.0, 150.0])) < 40]
