@@ -305,13 +305,17 @@ def _distinct_seeds(seeds: F64) -> F64:
 
 def _grid_sims(seeds: F64, angles_rad: NDArray[np.float64] | tuple[float, ...],
                scales: tuple[float, ...]) -> F64:
-    """Every seed turned by every angle offset and scaled by every factor: (K * A * S, 4)."""
-    out = []
-    for seed in seeds:
-        for a in angles_rad:
-            for f in scales:
-                out.append([seed[0], seed[1], seed[2] + a, seed[3] * f])
-    return np.array(out, np.float64)
+    """Every seed turned by every angle offset and scaled by every factor:
+    (K * A * S, 4), seed-major, then angle, then scale."""
+    seeds = np.asarray(seeds, np.float64).reshape(-1, 4)
+    angles = np.asarray(angles_rad, np.float64)
+    factors = np.asarray(scales, np.float64)
+    out = np.empty((len(seeds), len(angles), len(factors), 4))
+    out[..., 0] = seeds[:, 0, None, None]
+    out[..., 1] = seeds[:, 1, None, None]
+    out[..., 2] = seeds[:, 2, None, None] + angles[None, :, None]
+    out[..., 3] = seeds[:, 3, None, None] * factors[None, None, :]
+    return out.reshape(-1, 4)
 
 
 def _best_distinct(views: NDArray[np.int64], llr: F64, count: int) -> NDArray[np.int64]:

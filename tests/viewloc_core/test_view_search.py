@@ -224,3 +224,15 @@ def test_a_large_screen_is_prescreened_on_fewer_samples(
             full_best = search_views(feats, templates, seeds, chance, 6, offsets, 24, (0.0,))[0]
         assert np.hypot(*(prescreened.sim[:2] - sim_true[:2])) < 2.0
         assert prescreened.log_likelihood_ratio >= 0.97 * full_best.log_likelihood_ratio
+
+
+def test_the_grid_is_seed_major_then_angle_then_scale():
+    seeds = np.array([[10.0, 20.0, 0.5, 1.0], [30.0, 40.0, -1.0, 2.0]])
+    grid = view_search._grid_sims(seeds, (0.0, 0.25), (0.9, 1.0, 1.1))
+    assert grid.shape == (12, 4)
+    k = 0
+    for seed in seeds:
+        for a in (0.0, 0.25):
+            for f in (0.9, 1.0, 1.1):
+                assert grid[k].tolist() == [seed[0], seed[1], seed[2] + a, seed[3] * f]
+                k += 1
