@@ -80,11 +80,11 @@ CONTOUR_FACE_RENDERS = 10_000_000
 #: those set the scale of the training view's edge map and the outline ranks
 #: with the texture inside. On LM-O the driller's outline has a lower
 #: quartile of 0.12 over all views; 0.47 of the edges of its 12 level-0
-#: views lay on the outline over black, 0.90 over white, and seeded at the true place in the
-#: photos its best view rose from chance (log likelihood ratio -35 to +56)
-#: to +46 to +163. Ape, can, cat, barbell, bracket and free-form have no view
-#: under the level (their outlines' lower quartiles 0.35-0.53), so their
-#: models are unchanged.
+#: views lay on the outline over black, 0.90 over white, and seeded at the
+#: true place in the photos its best view rose from chance (log likelihood
+#: ratio -35 to +56) to +46 to +163. Ape, can, cat, barbell, bracket and
+#: free-form have no view under the level (their outlines' lower quartiles
+#: 0.35-0.53), so their models are unchanged.
 DARK_OUTLINE_LEVEL = 0.2
 #: Grey level of the training renders' background: black, or white for a
 #: dark part (see DARK_OUTLINE_LEVEL).
