@@ -44,6 +44,8 @@ Array = NDArray[np.float64]
 #: Bump when the array layout changes.
 CONTOUR_SCHEMA_VERSION = 1
 
+#: Point kinds: the outline (occluding contours and the edges of an open
+#: surface) and sharp creases between two faces.
 KIND_OCCLUDING = 0
 KIND_CREASE = 1
 
@@ -124,10 +126,30 @@ class ContourModel:
             d = -pose.R_m2c[2]
         return int((self.directions @ d).argmax())
 
-    def view_points(self, view: int) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-        """(points_obj (n, 3), normals_obj (n, 3)) of one view, float32."""
+    def view_points(self, view: int, kind: int | None = None,
+                    ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        """(points_obj (n, 3), normals_obj (n, 3)) of one view, float32; only
+        those of ``kind`` (:data:`KIND_OCCLUDING` or :data:`KIND_CREASE`) when given."""
         n = int(self.counts[view])
-        return self.points_obj[view, :n], self.normals_obj[view, :n]
+        if kind is None:
+            return self.points_obj[view, :n], self.normals_obj[view, :n]
+        keep = self.kinds[view, :n] == kind
+        return self.points_obj[view, :n][keep], self.normals_obj[view, :n][keep]
+
+    def outline_only(self) -> ContourModel:
+        """The same model without its crease points (see
+        :mod:`viewloc_core.crease_visibility`)."""
+        points = np.zeros_like(self.points_obj)
+        normals = np.zeros_like(self.normals_obj)
+        counts = np.zeros_like(self.counts)
+        for v in range(self.n_views):
+            pts, nrm = self.view_points(v, KIND_OCCLUDING)
+            points[v, :len(pts)] = pts
+            normals[v, :len(pts)] = nrm
+            counts[v] = len(pts)
+        return ContourModel(self.directions, points, normals,
+                            np.full_like(self.kinds, KIND_OCCLUDING), counts, self.d0_mm,
+                            self.f_px, self.image_size)
 
     def to_arrays(self) -> dict[str, Any]:
         """Plain arrays plus JSON-able metadata (for the model file)."""
@@ -388,5 +410,6 @@ def _view_contour(
     gnorm = np.linalg.norm(g, axis=1)
     use_mask = is_occ & (gnorm > 0.05)
     normals[use_mask] = g[use_mask] / gnorm[use_mask, None]
-    kinds = np.where(is_occ, KIND_OCCLUDING, KIND_CREASE).astype(np.uint8)
+    # The edge of an open surface is part of the outline, not a crease.
+    kinds = np.where(is_occ | boundary[sel][idx], KIND_OCCLUDING, KIND_CREASE).astype(np.uint8)
     return pts[visible], normals[visible], kinds[visible]

@@ -664,6 +664,7 @@ def learn_from_mesh(
     ObjectModel
     """
     from viewloc_core.contour_model import build_contour_model
+    from viewloc_core.crease_visibility import confirmed_shares, creases_show
     from viewloc_core.mesh import mesh_diameter_mm
     from viewloc_core.render import Renderer, prepare, random_lights
     from viewloc_core.symmetry import detect_symmetries
@@ -683,6 +684,7 @@ def learn_from_mesh(
     rotations: list[NDArray[np.float64]] = []
     samples: list[_ViewSample] = []
     angles: list[tuple[float, float]] = []
+    views_seen: list[NDArray[np.uint8]] = []
     from viewloc_core.pose import Pose
 
     with Renderer() as renderer:
@@ -715,6 +717,7 @@ def learn_from_mesh(
                 seen = renderer.render(prepared, camera, pose, lights=lights,
                                        background_rgb=WHITE_RGB).color
             sample = _sample_from_image(seen, result.mask, c, config, gen)
+            views_seen.append(seen)
             if colours is not None:
                 colours.add(result.color, result.mask)
             clusterer.add(sample, view.direction)
@@ -731,6 +734,10 @@ def learn_from_mesh(
         contour_dirs = np.array([v.direction for v in view_directions(level,
                                                                       config.max_polar_deg)])
         contour = build_contour_model(centred, contour_dirs, renderer, d0, f, (size, size))
+        # A part whose own views do not show its creases (a dark part) is
+        # fitted and scored by its outline alone (crease_visibility).
+        if not creases_show(*confirmed_shares(contour, views_seen, rotations, camera, d0)):
+            contour = contour.outline_only()
     if progress is not None:
         progress("finishing", 1.0)
     model = _finish(clusterer, rotations, samples, angles, "mesh", diameter, d0, f, size,

@@ -338,7 +338,7 @@ def _search_prior(search: int) -> Array:
     return np.exp(-0.5 * (ks / sigma) ** 2)
 
 
-def _search(
+def edges_along_normals(
     grad: NDArray[np.float32],
     uv_l: Array,
     n2: Array,
@@ -620,8 +620,8 @@ def _chance_fraction(
               & (uv_s[:, 1] >= 1) & (uv_s[:, 1] <= camera.height - 2))
         if np.count_nonzero(ok) < 6:
             continue
-        found, offset = _search(edges.gradients[0], uv_s[ok], n2[ok], search,
-                                opts.min_gradient, cos_max)
+        found, offset = edges_along_normals(edges.gradients[0], uv_s[ok], n2[ok], search,
+                                            opts.min_gradient, cos_max)
         rates.append(np.count_nonzero(found & (np.abs(offset) <= opts.inlier_px)) / len(uv_s[ok]))
     chance = float(np.mean(rates)) if rates else 1.0
     return chance, spacing

@@ -8,7 +8,12 @@ import pytest
 import trimesh
 
 from viewloc_core.camera import Camera
-from viewloc_core.contour_model import KIND_OCCLUDING, ContourModel, build_contour_model
+from viewloc_core.contour_model import (
+    KIND_CREASE,
+    KIND_OCCLUDING,
+    ContourModel,
+    build_contour_model,
+)
 from viewloc_core.errors import ModelFormatError
 from viewloc_core.pose import Pose
 from viewloc_core.render import Renderer
@@ -96,3 +101,22 @@ def test_arrays_round_trip(setup):
     del broken["counts"]
     with pytest.raises(ModelFormatError):
         ContourModel.from_arrays(broken)
+
+
+def test_the_edge_of_an_open_surface_is_outline_and_outline_only_drops_creases(setup):
+    _, _, renderer = setup
+    # A bent sheet (two squares at 90 deg), open at its edges, seen obliquely:
+    # its free edges are outline, its bend a crease.
+    verts = np.array([[0, 0, 0], [60, 0, 0], [60, 60, 0], [0, 60, 0],
+                      [0, 60, 60], [60, 60, 60]], float)
+    faces = np.array([[0, 1, 2], [0, 2, 3], [3, 2, 5], [3, 5, 4]])
+    sheet = trimesh.Trimesh(verts - verts.mean(axis=0), faces, process=False)
+    direction = np.array([[0.3, -0.5, 1.0]])
+    model = build_contour_model(sheet, direction, renderer, 500.0, 500.0, (200, 200))
+    kinds = model.kinds[0, :model.counts[0]]
+    assert (kinds == KIND_OCCLUDING).sum() > 3 * (kinds == KIND_CREASE).sum() > 0
+    outline = model.outline_only()
+    pts, _ = model.view_points(0, KIND_OCCLUDING)
+    assert outline.counts[0] == len(pts)
+    np.testing.assert_array_equal(outline.view_points(0)[0], pts)
+    assert (outline.kinds == KIND_OCCLUDING).all()
