@@ -24,7 +24,12 @@ from numpy.typing import NDArray
 from viewloc_core.camera import Camera
 from viewloc_core.contour_model import KIND_CREASE, KIND_OCCLUDING, ContourModel
 from viewloc_core.pose import Pose
-from viewloc_core.refine import RefineOptions, edges_along_normals, prepare_edges
+from viewloc_core.refine import (
+    RefineOptions,
+    edges_along_normals,
+    prepare_edges,
+    project_contour_view,
+)
 
 #: The creases are kept when the share of their points that find an edge in
 #: the training views is at least this share of the outline's. Measured
@@ -76,25 +81,15 @@ def confirmed_shares(
     for image, R in zip(images, rotations, strict=True):
         pose = Pose(np.asarray(R, np.float64), np.array([0.0, 0.0, d0_mm]))
         grad = prepare_edges(image, 1).gradients[0]
-        view = contour.nearest_view(pose)
         for kind, tally in found.items():
-            pts, nrm = contour.view_points(view, kind)
-            if not len(pts):
+            projected = project_contour_view(camera, contour, pose, kind)
+            if projected is None:
                 continue
-            X = pts.astype(np.float64) @ pose.R_m2c.T + pose.t_m2c
-            uv = camera.project(X)
-            # The 2D normal: where a small step along the 3D normal projects.
-            step = camera.project(X + 0.01 * d0_mm * (nrm.astype(np.float64) @ pose.R_m2c.T))
-            n2 = step - uv
-            length = np.linalg.norm(n2, axis=1)
-            inside = ((length > 1e-9) & (uv[:, 0] >= 1) & (uv[:, 1] >= 1)
-                      & (uv[:, 0] <= camera.width - 2) & (uv[:, 1] <= camera.height - 2))
-            if not inside.any():
-                continue
-            ok, offset = edges_along_normals(grad, uv[inside], n2[inside] / length[inside, None],
-                                             _SEARCH_PX, options.min_gradient, cos_max)
+            uv, n2 = projected
+            ok, offset = edges_along_normals(grad, uv, n2, _SEARCH_PX, options.min_gradient,
+                                             cos_max)
             tally[0] += int(np.count_nonzero(ok & (np.abs(offset) <= options.inlier_px)))
-            tally[1] += int(np.count_nonzero(inside))
+            tally[1] += len(uv)
 
     def share(kind: int) -> float:
         hits, total = found[kind]

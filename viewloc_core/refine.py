@@ -276,13 +276,15 @@ class _Projector:
     projects them.
     """
 
-    __slots__ = ("camera", "model", "stride", "_stacked", "_intrinsics", "_dist", "_distorted",
-                 "_windows")
+    __slots__ = ("camera", "model", "stride", "kind", "_stacked", "_intrinsics", "_dist",
+                 "_distorted", "_windows")
 
-    def __init__(self, camera: Camera, model: ContourModel, stride: int = 1) -> None:
+    def __init__(self, camera: Camera, model: ContourModel, stride: int = 1,
+                 kind: int | None = None) -> None:
         self.camera = camera
         self.model = model
         self.stride = stride
+        self.kind = kind
         self._stacked: dict[int, Array] = {}
         self._intrinsics = np.array([camera.fx, camera.fy, camera.cx, camera.cy,
                                      camera.focal_px])
@@ -293,7 +295,7 @@ class _Projector:
     def _view(self, view: int) -> Array:
         stacked = self._stacked.get(view)
         if stacked is None:
-            pts_obj, nrm_obj = self.model.view_points(view)
+            pts_obj, nrm_obj = self.model.view_points(view, self.kind)
             stacked = np.concatenate([pts_obj[::self.stride],
                                       nrm_obj[::self.stride]]).astype(np.float64)
             self._stacked[view] = stacked
@@ -322,6 +324,22 @@ class _Projector:
         if len(uv) == 0:
             return None
         return _Projection(uv, n2, X)
+
+
+def project_contour_view(
+    camera: Camera, contour: ContourModel, pose: Pose, kind: int | None = None,
+) -> tuple[Array, Array] | None:
+    """The contour points of the view nearest to ``pose`` (only those of
+    ``kind`` when given) as the refinement projects them.
+
+    Returns
+    -------
+    (uv (N, 2), n2 (N, 2)) float64 or None
+        Pixels and unit 2D normals of the points inside the image (a pixel
+        from its border); None when none is.
+    """
+    proj = _Projector(camera, contour, 1, kind).project(pose, margin_px=1.0)
+    return None if proj is None else (proj.uv, proj.n2)
 
 
 @functools.lru_cache(maxsize=64)
