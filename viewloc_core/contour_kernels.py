@@ -20,6 +20,9 @@ from numpy.typing import NDArray
 from viewloc_core.normal_search import search_normals
 
 F64 = NDArray[np.float64]
+#: Contour points come as float64 (stacked by the projector) or as the
+#: model's own float32 (the compiled fit); the arithmetic is float64.
+Points = NDArray[np.float32] | NDArray[np.float64]
 
 
 @njit(cache=True, nogil=True)
@@ -43,14 +46,14 @@ def to_pixel(x: float, y: float, z: float, intrinsics: F64, dist: F64,
 
 @njit(cache=True, nogil=True)
 def project_contour(
-    points: F64, normals: F64, R: F64, t: F64, intrinsics: F64, dist: F64, distorted: bool,
-    window: F64,
+    points: Points, normals: Points, R: F64, t: F64, intrinsics: F64, dist: F64,
+    distorted: bool, window: F64,
 ) -> tuple[F64, F64, F64]:  # pragma: no cover - compiled
     """Contour points seen at a pose: pixels, unit 2D normals, camera points.
 
     Parameters
     ----------
-    points, normals : (N, 3) float64
+    points, normals : (N, 3) float32 or float64
         Contour points (mm) and their 3D normals, object frame.
     R : (3, 3) float64
         Rotation object -> camera.

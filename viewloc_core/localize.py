@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 from viewloc_core import (
     contour_kernels,
     feature_kernels,
+    gauss_newton_kernel,
     normal_search,
     pairing,
     part_colour,
@@ -313,6 +314,7 @@ def warm_up() -> None:
     sample_evidence.warm_up()
     normal_search.warm_up()
     contour_kernels.warm_up()
+    gauss_newton_kernel.warm_up()
     shading_kernels.warm_up()
     shift_search.warm_up()
 

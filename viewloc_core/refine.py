@@ -41,10 +41,11 @@ from viewloc_core.camera import Camera
 from viewloc_core.contour_kernels import edge_residuals, project_contour
 from viewloc_core.contour_model import ContourModel
 from viewloc_core.errors import InvalidImageError, InvalidInputError
+from viewloc_core.gauss_newton_kernel import gauss_newton_level
 from viewloc_core.gradient import image_gradient
 from viewloc_core.normal_search import search_normals
 from viewloc_core.pose import Pose
-from viewloc_core.robust import median, tukey_weights
+from viewloc_core.robust import tukey_weights
 from viewloc_core.shift_search import shift_grid, shift_scores
 
 Array = NDArray[np.float64]
@@ -276,8 +277,8 @@ class _Projector:
     projects them.
     """
 
-    __slots__ = ("camera", "model", "stride", "kind", "_stacked", "_intrinsics", "_dist",
-                 "_distorted", "_windows")
+    __slots__ = ("camera", "model", "stride", "kind", "_stacked", "intrinsics", "dist",
+                 "distorted", "_windows")
 
     def __init__(self, camera: Camera, model: ContourModel, stride: int = 1,
                  kind: int | None = None) -> None:
@@ -286,10 +287,10 @@ class _Projector:
         self.stride = stride
         self.kind = kind
         self._stacked: dict[int, Array] = {}
-        self._intrinsics = np.array([camera.fx, camera.fy, camera.cx, camera.cy,
+        self.intrinsics = np.array([camera.fx, camera.fy, camera.cx, camera.cy,
                                      camera.focal_px])
-        self._dist = camera.dist8
-        self._distorted = camera.has_distortion
+        self.dist = camera.dist8
+        self.distorted = camera.has_distortion
         self._windows: dict[float, Array] = {}
 
     def _view(self, view: int) -> Array:
@@ -301,7 +302,7 @@ class _Projector:
             self._stacked[view] = stacked
         return stacked
 
-    def _window(self, margin_px: float) -> Array:
+    def window(self, margin_px: float) -> Array:
         """Centre and half-size of ``[margin, size - 1 - margin]`` on both axes, (4,)."""
         window = self._windows.get(margin_px)
         if window is None:
@@ -319,8 +320,8 @@ class _Projector:
         if n == 0:
             return None
         uv, n2, X = project_contour(stacked[:n], stacked[n:], pose.R_m2c, pose.t_m2c,
-                                    self._intrinsics, self._dist, self._distorted,
-                                    self._window(margin_px))
+                                    self.intrinsics, self.dist, self.distorted,
+                                    self.window(margin_px))
         if len(uv) == 0:
             return None
         return _Projection(uv, n2, X)
@@ -354,6 +355,21 @@ def _search_prior(search: int) -> Array:
     ks = np.arange(-search + 1, search, dtype=np.float64)
     sigma = max(1.0, search / 3.0)
     return np.exp(-0.5 * (ks / sigma) ** 2)
+
+
+@functools.lru_cache(maxsize=16)
+def _search_priors(search: int) -> Array:
+    """:func:`_search_prior` of every half-length up to ``search``, row ``k``
+    that of ``k`` (zero-padded), for the compiled fit whose search shrinks.
+
+    Returns
+    -------
+    (search + 1, 2 search - 1) float64
+    """
+    table = np.zeros((search + 1, max(2 * search - 1, 1)))
+    for k in range(1, search + 1):
+        table[k, :2 * k - 1] = _search_prior(k)
+    return table
 
 
 def edges_along_normals(
@@ -490,43 +506,21 @@ def refine_pose(
     pose = _align_shift(pose_init, projector, edges, min(1, n_levels - 1), opts)
     iterations = 0
     last = _Step()
+    model = contour_model
+    cos_max = math.cos(math.radians(opts.max_angle_deg))
     for level in range(n_levels - 1, -1, -1):
         search = int(opts.search_px[level])
-        last = _Step()
-        for _ in range(int(opts.iterations[level])):
-            proj = projector.project(pose, margin_px=1.0)
-            if proj is None:
-                break
-            m = _matches(proj, pose, camera, edges, level, search, opts)
-            if len(m.r) < 6:
-                break
-            w, _ = tukey_weights(m.r, min_scale=0.5 * 2.0**level)
-            if np.count_nonzero(w) < 6:
-                break
-            Jw = m.J * w[:, None]
-            H = Jw.T @ m.J
-            g = Jw.T @ m.r
-            # Levenberg damping keeps a poorly constrained direction (e.g.
-            # depth of a small part) from jumping.
-            H.flat[::7] = H.flat[::7] * (1.0 + 1e-3) + 1e-9
-            # H is symmetric positive definite: Cholesky (OpenCV's costs a
-            # third of numpy's LU on a 6x6).
-            ok, neg_delta = cv2.solve(H, g.reshape(6, 1), flags=cv2.DECOMP_CHOLESKY)
-            if not ok:
-                break
-            delta = -np.asarray(neg_delta, dtype=np.float64).reshape(6)
-            if not np.isfinite(delta).all():
-                break
-            pose = _apply(pose, delta)
-            iterations += 1
-            last = _Step(math.degrees(math.sqrt(float(delta[:3] @ delta[:3]))),
-                         math.sqrt(float(delta[3:] @ delta[3:])),
-                         float(np.abs(m.J @ delta).max()))
-            if last.settled(opts, level):
-                break
-            # After the first levels the search can shrink as the pose settles.
-            if level == 0:
-                search = max(3, min(search, int(math.ceil(4 * median(np.abs(m.r)) + 2))))
+        R, t, done, step = gauss_newton_level(
+            edges.gradients[level], model.points_obj, model.normals_obj, model.counts,
+            model.directions, opts.point_stride, pose.R_m2c, pose.t_m2c,
+            projector.intrinsics, projector.dist, projector.distorted,
+            projector.window(1.0), level, search, int(opts.iterations[level]),
+            opts.min_gradient, cos_max, _search_priors(search), opts.tol_px,
+            opts.tol_rot_deg, opts.tol_trans_mm)
+        if done:
+            pose = Pose(R, t)
+        iterations += done
+        last = _Step(*(float(v) for v in step))
     if iterations:
         pose = _reorthonormalized(pose)
     return _final(pose, camera, projector, edges, opts, iterations, last)
