@@ -10,8 +10,10 @@ Results are the same as one call over all of them, in the same order.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import itertools
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
+from typing import TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -19,6 +21,14 @@ from numpy.typing import NDArray
 #: One worker: the calling thread is the other half. Concurrent requests
 #: share it and at worst wait for each other's halves.
 _POOL = ThreadPoolExecutor(max_workers=1, thread_name_prefix="viewloc-halves")
+
+#: The worker of :func:`each_on_both`, apart from ``_POOL``: an item's work
+#: may itself split its hypotheses in halves, and a single worker waiting
+#: for a task queued behind itself would wait for ever.
+_ITEM_POOL = ThreadPoolExecutor(max_workers=1, thread_name_prefix="viewloc-items")
+
+Item = TypeVar("Item")
+Result = TypeVar("Result")
 
 
 def over_halves(
@@ -51,3 +61,43 @@ def over_halves(
     second = _POOL.submit(work, mid, n_items)
     first = work(0, mid)
     return tuple(np.concatenate([a, b]) for a, b in zip(first, second.result(), strict=True))
+
+
+def each_on_both(work: Callable[[Item], Result], items: Sequence[Item]) -> list[Result]:
+    """``[work(x) for x in items]``, the items taken in turn by the calling
+    thread and a worker thread.
+
+    For a few items of uneven cost (the pose fits of a localization: one
+    may take ten times another), where halves would leave a core idle. The
+    work must release the GIL for the threads to overlap.
+
+    Parameters
+    ----------
+    work : callable
+        Called once per item; its exceptions reach the caller.
+    items : sequence
+
+    Returns
+    -------
+    list
+        The results in the items' order.
+    """
+    if len(items) < 2:
+        return [work(x) for x in items]
+    results: list[Result | None] = [None] * len(items)
+    # next() of an itertools.count is atomic under the GIL: each index is
+    # handed out once.
+    turns = itertools.count()
+
+    def drain() -> None:
+        for i in turns:
+            if i >= len(items):
+                return
+            results[i] = work(items[i])
+
+    other = _ITEM_POOL.submit(drain)
+    try:
+        drain()
+    finally:
+        other.result()
+    return results  # type: ignore[return-value]  # every slot was filled

@@ -45,6 +45,7 @@ from viewloc_core.align import (
     log_probability,
     refine_at_model_scale,
 )
+from viewloc_core.both_cores import each_on_both
 from viewloc_core.camera import Camera
 from viewloc_core.contour_model import ContourModel
 from viewloc_core.detection import Detection, Similarity2D
@@ -1034,21 +1035,23 @@ def localize(
         shading = _Shading(arr, *surface, colour)
     else:
         colour = None
-    fits = [_final_detection(model, loc, level, factor, camera, edges, contour,
-                             index.view_radius_px, shading)
-            for loc in located[: options.max_detections]]
+    def fit(loc: _Located) -> _Fitted:
+        return _final_detection(model, loc, level, factor, camera, edges, contour,
+                                index.view_radius_px, shading)
+
+    # The fits are independent and their refinements compiled: they share
+    # the two cores (LM-O, colour locations: pose stage 65 -> 57 ms median).
+    first = located[: options.max_detections]
+    # Colour locations compete with the alignment's by the colour under the
+    # fit (see _ranked).
+    fitted = each_on_both(fit, first + (colour_located if colour is not None else []))
+    fits, colour_fits = fitted[:len(first)], fitted[len(first):]
     if (contour is not None and len(located) > options.max_detections
             and not all(_settled(f) for f in fits)):
-        spare = _final_detection(model, located[options.max_detections], level, factor,
-                                 camera, edges, contour, index.view_radius_px, shading)
+        spare = fit(located[options.max_detections])
         if _convincing(spare):
             fits.append(spare)
-    if colour is not None:
-        # Colour locations compete with the alignment's by the colour under
-        # the fit (see _ranked).
-        fits += [_final_detection(model, loc, level, factor, camera, edges, contour,
-                                  index.view_radius_px, shading)
-                 for loc in colour_located]
+    fits += colour_fits
     # _ranked lowers a score only to that of a detection above it, itself
     # at least min_score: nothing falls under min_score on the way.
     detections = _ranked([f for f in fits if f.detection.score >= min_score],

@@ -3,10 +3,11 @@
 import threading
 
 import numpy as np
+import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from viewloc_core.both_cores import over_halves
+from viewloc_core.both_cores import each_on_both, over_halves
 
 
 @given(n_items=st.integers(0, 50), min_items=st.integers(0, 60))
@@ -38,3 +39,40 @@ def test_the_second_half_runs_on_another_thread() -> None:
     over_halves(10, work, 2)
     assert threads[0] == threading.get_ident()
     assert threads[5] != threading.get_ident()
+
+
+@given(items=st.lists(st.integers(-1000, 1000), max_size=30))
+def test_each_on_both_gives_every_result_in_order(items: list[int]) -> None:
+    calls: list[int] = []
+
+    def work(x: int) -> int:
+        calls.append(x)
+        return 3 * x + 1
+
+    assert each_on_both(work, items) == [3 * x + 1 for x in items]
+    assert sorted(calls) == sorted(items)  # each item once
+
+
+def test_each_on_both_uses_the_other_thread_and_passes_errors_on() -> None:
+    release = threading.Event()
+    threads: dict[int, int] = {}
+
+    def work(x: int) -> int:
+        threads[x] = threading.get_ident()
+        if x == 0:
+            # Hold the first item until another thread has taken the second.
+            assert release.wait(5.0)
+        else:
+            release.set()
+        return x
+
+    assert each_on_both(work, [0, 1]) == [0, 1]
+    assert threads[0] != threads[1]
+
+    def fails(x: int) -> int:
+        if x == 2:
+            raise ValueError("item 2")
+        return x
+
+    with pytest.raises(ValueError, match="item 2"):
+        each_on_both(fails, [0, 1, 2, 3])
