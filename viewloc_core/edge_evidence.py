@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 
 from viewloc_core.both_cores import over_halves
 from viewloc_core.features import ORIENTATION_BINS, ImageFeatures, orientation_turn, wanted_bits
-from viewloc_core.sample_evidence import lay_over
+from viewloc_core.sample_evidence import lay_over, lay_over_grid
 
 F64 = NDArray[np.float64]
 
@@ -53,6 +53,25 @@ def chance_rates(feats: ImageFeatures) -> F64:
     return np.clip(rates, 0.005, 0.95)
 
 
+def _log_ratios(chance: F64) -> tuple[F64, F64]:
+    """Log-likelihood ratio of a hit and of a miss per orientation bin."""
+    return (np.log(TRUE_HIT_RATE / chance),
+            np.log((1.0 - TRUE_HIT_RATE) / (1.0 - chance)))
+
+
+def _kernel_similarities(sims: F64) -> tuple[NDArray[np.float32], NDArray[np.float32],
+                                              NDArray[np.float32], NDArray[np.float32],
+                                              NDArray[np.uint8]]:
+    """``s cos α``, ``s sin α``, x, y (float32, the precision the positions
+    were tuned in) and the orientation turn of (H, 4) similarities, as the
+    kernels of :mod:`viewloc_core.sample_evidence` take them."""
+    cos_scale = (sims[:, 3] * np.cos(sims[:, 2])).astype(np.float32)
+    sin_scale = (sims[:, 3] * np.sin(sims[:, 2])).astype(np.float32)
+    # The samples' orientation bins turn with the in-plane angle.
+    turn = orientation_turn(sims[:, 2]).astype(np.uint8)
+    return cos_scale, sin_scale, sims[:, 0].astype(np.float32), sims[:, 1].astype(np.float32), turn
+
+
 def lay_over_templates(
     feats: ImageFeatures, px: NDArray[np.float32], py: NDArray[np.float32],
     bins: NDArray[np.uint8], valid: NDArray[np.bool_], rows: NDArray[np.int64], sims: F64,
@@ -78,15 +97,8 @@ def lay_over_templates(
         Per hypothesis, as :func:`viewloc_core.sample_evidence.lay_over`
         returns them (samples outside the image add nothing).
     """
-    log_hit = np.log(TRUE_HIT_RATE / chance)
-    log_miss = np.log((1.0 - TRUE_HIT_RATE) / (1.0 - chance))
-    # The similarity in float32, the precision the positions were tuned in.
-    cos_scale = (sims[:, 3] * np.cos(sims[:, 2])).astype(np.float32)
-    sin_scale = (sims[:, 3] * np.sin(sims[:, 2])).astype(np.float32)
-    x = sims[:, 0].astype(np.float32)
-    y = sims[:, 1].astype(np.float32)
-    # The samples' orientation bins turn with the in-plane angle.
-    turn = orientation_turn(sims[:, 2]).astype(np.uint8)
+    log_hit, log_miss = _log_ratios(chance)
+    cos_scale, sin_scale, x, y, turn = _kernel_similarities(sims)
     rows = np.ascontiguousarray(rows, np.int64)
 
     def lay_over_some(lo: int, hi: int) -> tuple[NDArray[np.generic], ...]:
@@ -98,3 +110,39 @@ def lay_over_templates(
         len(rows), lay_over_some, _MIN_SAMPLES_SPLIT // max(px.shape[1], 1))
     return (np.asarray(llr, np.float64), np.asarray(hits, np.int64),
             np.asarray(n_valid, np.int64), np.asarray(llr_all_found, np.float64))
+
+
+def lay_over_grid_of_templates(
+    feats: ImageFeatures, px: NDArray[np.float32], py: NDArray[np.float32],
+    bins: NDArray[np.uint8], valid: NDArray[np.bool_], views: NDArray[np.int64], sims: F64,
+    chance: F64,
+) -> F64:
+    """The llr of :func:`lay_over_templates` for every (similarity, view)
+    pair of a grid, similarity-major, without building the pairs.
+
+    Parameters
+    ----------
+    feats, px, py, bins, valid, chance
+        As :func:`lay_over_templates` takes them.
+    views : (V,) int64
+        Template rows.
+    sims : (S, 4) float64
+        Template frame -> image similarities.
+
+    Returns
+    -------
+    (S * V,) float64
+        Pair ``(s, j)`` at ``s * V + j``.
+    """
+    log_hit, log_miss = _log_ratios(chance)
+    cos_scale, sin_scale, x, y, turn = _kernel_similarities(sims)
+    views = np.ascontiguousarray(views, np.int64)
+
+    def lay_over_some(lo: int, hi: int) -> tuple[NDArray[np.generic], ...]:
+        return (lay_over_grid(feats.orientation_bits, _WANTED, px, py, bins, valid, views,
+                              cos_scale[lo:hi], sin_scale[lo:hi], x[lo:hi], y[lo:hi],
+                              turn[lo:hi], log_hit, log_miss),)
+
+    (llr,) = over_halves(len(sims), lay_over_some,
+                         _MIN_SAMPLES_SPLIT // max(px.shape[1] * len(views), 1))
+    return np.asarray(llr, np.float64)

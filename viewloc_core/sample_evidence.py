@@ -100,6 +100,61 @@ def lay_over(
     return llr, hits, n_valid, best
 
 
+@njit(cache=True, nogil=True)
+def lay_over_grid(
+    bits: NDArray[np.uint16], wanted: NDArray[np.uint16],
+    px: NDArray[np.float32], py: NDArray[np.float32], bins: NDArray[np.uint8],
+    valid: NDArray[np.bool_], views: NDArray[np.int64],
+    cos_scale: NDArray[np.float32], sin_scale: NDArray[np.float32],
+    x: NDArray[np.float32], y: NDArray[np.float32], turn: NDArray[np.uint8],
+    log_hit: F64, log_miss: F64,
+) -> F64:  # pragma: no cover - compiled
+    """The llr of :func:`lay_over` for every template row of ``views`` laid
+    over the image by every one of S similarities, without the S x V pair
+    arrays (a colour location screens about a hundred thousand pairs).
+
+    Parameters
+    ----------
+    bits, wanted, px, py, bins, valid, log_hit, log_miss
+        As :func:`lay_over` takes them.
+    views : (V,) int64
+        Template rows.
+    cos_scale, sin_scale, x, y, turn : (S,)
+        The similarities, as :func:`lay_over` takes them per pair.
+
+    Returns
+    -------
+    llr : (S * V,) float64
+        Similarity-major: pair ``(s, j)`` at ``s * V + j``, the value
+        :func:`lay_over` gives it.
+    """
+    n_sims = len(x)
+    n_views = len(views)
+    n_pts = px.shape[1]
+    h, w = bits.shape
+    n_bins = len(wanted)
+    llr = np.zeros(n_sims * n_views)
+    for k in range(n_sims):
+        c, s, tx, ty, tn = cos_scale[k], sin_scale[k], x[k], y[k], turn[k]
+        for j in range(n_views):
+            t = views[j]
+            acc = 0.0
+            for p in range(n_pts):
+                if not valid[t, p]:
+                    continue
+                u = int(np.rint(c * px[t, p] - s * py[t, p] + tx))
+                v = int(np.rint(s * px[t, p] + c * py[t, p] + ty))
+                if u < 0 or u >= w or v < 0 or v >= h:
+                    continue
+                b = (bins[t, p] + tn) & (n_bins - 1)
+                if bits[v, u] & wanted[b]:
+                    acc += log_hit[b]
+                else:
+                    acc += log_miss[b]
+            llr[k * n_views + j] = acc
+    return llr
+
+
 def warm_up() -> None:
     """Compile (or load from numba's cache) for the types the view search passes."""
     f32 = np.zeros(1, np.float32)
@@ -107,3 +162,7 @@ def warm_up() -> None:
              np.zeros((1, 1), np.float32), np.zeros((1, 1), np.uint8), np.ones((1, 1), np.bool_),
              np.zeros(1, np.int64), f32, f32, f32, f32, np.zeros(1, np.uint8), np.zeros(16),
              np.zeros(16))
+    lay_over_grid(np.zeros((1, 1), np.uint16), np.ones(16, np.uint16),
+                  np.zeros((1, 1), np.float32), np.zeros((1, 1), np.float32),
+                  np.zeros((1, 1), np.uint8), np.ones((1, 1), np.bool_), np.zeros(1, np.int64),
+                  f32, f32, f32, f32, np.zeros(1, np.uint8), np.zeros(16), np.zeros(16))

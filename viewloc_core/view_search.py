@@ -28,7 +28,7 @@ from numpy.typing import NDArray
 
 from viewloc_core import similarity as sim2
 from viewloc_core.align import coverage_many, extend_many, sample_spacing_px, spread_subset
-from viewloc_core.edge_evidence import lay_over_templates
+from viewloc_core.edge_evidence import lay_over_grid_of_templates, lay_over_templates
 from viewloc_core.features import (
     ImageFeatures,
     orientation_bin,
@@ -222,34 +222,50 @@ def score_views(
             llr / np.maximum(llr_all_found, 1e-9))
 
 
+def _coarse_samples(templates: ViewTemplates, points: int) -> tuple[
+        NDArray[np.float32], NDArray[np.float32], NDArray[np.uint8], NDArray[np.bool_]]:
+    """px, py, bins and valid of each view's first ``points`` coarse samples."""
+    if points >= COARSE_POINTS:
+        return (templates.coarse_px, templates.coarse_py, templates.coarse_bins8,
+                templates.coarse_valid)
+    return (np.ascontiguousarray(templates.coarse_px[:, :points]),
+            np.ascontiguousarray(templates.coarse_py[:, :points]),
+            np.ascontiguousarray(templates.coarse_bins8[:, :points]),
+            np.ascontiguousarray(templates.coarse_valid[:, :points]))
+
+
 def _score_coarse(feats: ImageFeatures, templates: ViewTemplates, views: NDArray[np.int64],
                   sims: F64, chance: F64, points: int = COARSE_POINTS) -> F64:
     """The log-likelihood ratio of :func:`score_views` on each view's coarse
     subset (its first ``points`` samples)."""
-    if points >= COARSE_POINTS:
-        px, py = templates.coarse_px, templates.coarse_py
-        bins, valid = templates.coarse_bins8, templates.coarse_valid
-    else:
-        px = np.ascontiguousarray(templates.coarse_px[:, :points])
-        py = np.ascontiguousarray(templates.coarse_py[:, :points])
-        bins = np.ascontiguousarray(templates.coarse_bins8[:, :points])
-        valid = np.ascontiguousarray(templates.coarse_valid[:, :points])
-    llr = lay_over_templates(feats, px, py, bins, valid, views, sims, chance)[0]
+    llr = lay_over_templates(feats, *_coarse_samples(templates, points), views, sims,
+                             chance)[0]
     return llr * (templates.length_px[views] * sims[:, 3])
 
 
-def _screen(feats: ImageFeatures, templates: ViewTemplates, views: NDArray[np.int64],
-            sims: F64, chance: F64) -> F64:
-    """:func:`_score_coarse` of every pair, or of the pairs a pre-screen on
-    fewer samples ranks best (``-inf`` for the rest) when there are more
-    than PRESCREEN_MIN_PAIRS."""
-    if len(views) <= PRESCREEN_MIN_PAIRS:
-        return _score_coarse(feats, templates, views, sims, chance)
-    pre = _score_coarse(feats, templates, views, sims, chance, PRESCREEN_POINTS)
-    n_kept = int(PRESCREEN_KEPT * len(views))
+def _score_coarse_grid(feats: ImageFeatures, templates: ViewTemplates, sims: F64, chance: F64,
+                       points: int = COARSE_POINTS) -> F64:
+    """:func:`_score_coarse` of every view at every one of the (S, 4)
+    similarities, (S * V,) similarity-major: the pairs are not built."""
+    views = np.arange(len(templates))
+    llr = lay_over_grid_of_templates(feats, *_coarse_samples(templates, points), views, sims,
+                                     chance)
+    return llr * (templates.length_px[None, :] * sims[:, 3, None]).ravel()
+
+
+def _screen(feats: ImageFeatures, templates: ViewTemplates, sims: F64, chance: F64) -> F64:
+    """:func:`_score_coarse_grid` of every view at every similarity, or of
+    the pairs a pre-screen on fewer samples ranks best (``-inf`` for the
+    rest) when there are more than PRESCREEN_MIN_PAIRS."""
+    n_views = len(templates)
+    n_pairs = len(sims) * n_views
+    if n_pairs <= PRESCREEN_MIN_PAIRS:
+        return _score_coarse_grid(feats, templates, sims, chance)
+    pre = _score_coarse_grid(feats, templates, sims, chance, PRESCREEN_POINTS)
+    n_kept = int(PRESCREEN_KEPT * n_pairs)
     kept = np.argpartition(-pre, n_kept)[:n_kept]
-    llr = np.full(len(views), -np.inf)
-    llr[kept] = _score_coarse(feats, templates, views[kept], sims[kept], chance)
+    llr = np.full(n_pairs, -np.inf)
+    llr[kept] = _score_coarse(feats, templates, kept % n_views, sims[kept // n_views], chance)
     return llr
 
 
@@ -381,8 +397,7 @@ def search_views(
     # seeds that did.
     stage1 = _grid_sims(seeds, np.radians(screen_angles_deg), (1.0,))
     views1 = np.tile(np.arange(n_views), len(stage1))
-    sims1 = np.repeat(stage1, n_views, axis=0)
-    llr1 = _screen(feats, templates, views1, sims1, chance)
+    llr1 = _screen(feats, templates, stage1, chance)
     best_views = _best_distinct(views1, llr1, SCREENED_VIEWS)
     if kept_seeds is not None and len(seeds) > kept_seeds:
         per_seed = llr1.reshape(len(seeds), -1).max(axis=1)

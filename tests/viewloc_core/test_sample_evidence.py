@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from viewloc_core.features import ORIENTATION_BINS, wanted_bits
-from viewloc_core.sample_evidence import lay_over
+from viewloc_core.sample_evidence import lay_over, lay_over_grid
 
 
 def test_hits_misses_outside_and_padding_each_count_as_they_should():
@@ -34,3 +36,34 @@ def test_hits_misses_outside_and_padding_each_count_as_they_should():
         one, np.ones(1, np.uint8), log_hit, log_miss)
     assert list(hits_t) == [int(wanted[4] & bits[5, 10] != 0)]
     assert llr_t[0] == (log_hit[4] if hits_t[0] else log_miss[4]) + log_miss[4]
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**32 - 1))
+def test_the_grid_gives_each_pair_what_lay_over_gives_it(seed):
+    rng = np.random.default_rng(seed)
+    bits = rng.integers(0, 2**16, (40, 50)).astype(np.uint16)
+    bits[rng.random(bits.shape) < 0.6] = 0
+    wanted = wanted_bits(np.arange(ORIENTATION_BINS)).astype(np.uint16)
+    n_templates, n_points, n_sims = 7, 12, 5
+    px = rng.uniform(-15, 15, (n_templates, n_points)).astype(np.float32)
+    py = rng.uniform(-15, 15, (n_templates, n_points)).astype(np.float32)
+    bins = rng.integers(0, ORIENTATION_BINS, (n_templates, n_points)).astype(np.uint8)
+    valid = rng.random((n_templates, n_points)) < 0.8
+    views = rng.choice(n_templates, 4, replace=False).astype(np.int64)
+    angle = rng.uniform(-np.pi, np.pi, n_sims)
+    scale = rng.uniform(0.5, 2.0, n_sims)
+    c = (scale * np.cos(angle)).astype(np.float32)
+    s = (scale * np.sin(angle)).astype(np.float32)
+    x = rng.uniform(-5, 55, n_sims).astype(np.float32)
+    y = rng.uniform(-5, 45, n_sims).astype(np.float32)
+    turn = rng.integers(0, ORIENTATION_BINS + 1, n_sims).astype(np.uint8)
+    log_hit = rng.uniform(0, 3, ORIENTATION_BINS)
+    log_miss = -rng.uniform(0, 3, ORIENTATION_BINS)
+    grid = lay_over_grid(bits, wanted, px, py, bins, valid, views, c, s, x, y, turn,
+                         log_hit, log_miss)
+    # The same pairs built one by one, similarity-major.
+    k = np.repeat(np.arange(n_sims), len(views))
+    pairs, _, _, _ = lay_over(bits, wanted, px, py, bins, valid, np.tile(views, n_sims),
+                              c[k], s[k], x[k], y[k], turn[k], log_hit, log_miss)
+    np.testing.assert_array_equal(grid, pairs)

@@ -209,8 +209,11 @@ def test_a_large_screen_is_prescreened_on_fewer_samples(
         shifted = view_search._shifted(seeds, offsets)
         views = np.tile(np.arange(len(templates)), len(shifted))
         sims = np.repeat(shifted, len(templates), axis=0)
-        screened = view_search._screen(feats, templates, views, sims, chance)
+        screened = view_search._screen(feats, templates, shifted, chance)
         full = view_search._score_coarse(feats, templates, views, sims, chance)
+        # The grid's scores are those of the pairs built one by one.
+        np.testing.assert_array_equal(
+            view_search._score_coarse_grid(feats, templates, shifted, chance), full)
         kept = np.isfinite(screened)
         assert kept.sum() == int(view_search.PRESCREEN_KEPT * len(views))
         np.testing.assert_array_equal(screened[kept], full[kept])
