@@ -258,8 +258,9 @@ def _two_views_at_one_location(model):
 @pytest.mark.parametrize("near_symmetric", [True, False])
 def test_a_near_symmetric_parts_best_other_start_gets_the_full_fit(bracket_model, monkeypatch,
                                                                     near_symmetric):
-    # The quick fit of a start stops on the coarse level and ranks below the
-    # full fit it competes with, even where its own full fit ranks higher.
+    # The quick fit of a start (few iterations, half the points) can rank
+    # below the full fit it competes with, even where its own full fit
+    # ranks higher.
     # Here refinement leaves every pose where it is and confirms 0.70 of
     # the contour quickly, 0.95 fully; the first fit confirmed 0.90. A part
     # with near-symmetries gets the other start's full fit, and it wins; a

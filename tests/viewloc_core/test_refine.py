@@ -211,3 +211,24 @@ def test_a_fit_on_every_second_contour_point_converges_too(scene):
     assert res.inlier_fraction > 0.7
     with pytest.raises(InvalidInputError):
         RefineOptions(point_stride=0)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 3, 7])
+def test_a_quick_fit_ends_where_the_full_fit_does(scene, seed):
+    # The localizer compares starts by quick fits against full ones: a quick
+    # fit that ends on the full-resolution level lands where its full fit
+    # would (one that stopped on the coarse level fails all four cases).
+    from viewloc_core.localize import FINAL_REFINE, QUICK_REFINE
+
+    renderer, prepared, model = scene
+    rng = np.random.default_rng(seed)
+    truth = Pose(Rotation.random(random_state=seed).as_matrix(),
+                 np.array([rng.uniform(-50, 50), rng.uniform(-30, 30), 600.0]))
+    out = renderer.render(prepared, CAM, truth)
+    edges = prepare_edges(np.where(out.mask[..., None], out.color, _clutter(rng)), 2)
+    start = _perturbed(truth, rng, 3.0, 0.02)
+    full = refine_pose(edges, CAM, start, model, FINAL_REFINE)
+    quick = refine_pose(edges, CAM, start, model, QUICK_REFINE)
+    assert rotation_angle_deg(quick.pose.R_m2c, full.pose.R_m2c) < 0.5
+    assert np.linalg.norm(quick.pose.t_m2c - full.pose.t_m2c) < 2.5
+    assert abs(quick.inlier_fraction - full.inlier_fraction) < 0.03
