@@ -18,6 +18,39 @@ from numpy.typing import NDArray
 F64 = NDArray[np.float64]
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _laid_template(
+    bits: NDArray[np.uint16], wanted: NDArray[np.uint16],
+    px: NDArray[np.float32], py: NDArray[np.float32], bins: NDArray[np.uint8],
+    valid: NDArray[np.bool_], t: np.int64, c: np.float32, s: np.float32, tx: np.float32,
+    ty: np.float32, tn: np.uint8, log_hit: F64, log_miss: F64,
+) -> tuple[float, int, int, float]:  # pragma: no cover - compiled
+    """Template row ``t`` laid over the image by one similarity: its llr,
+    hits, valid samples and the llr had every sample inside found its edge."""
+    h, w = bits.shape
+    n_bins = len(wanted)
+    acc = 0.0
+    acc_best = 0.0
+    n_hit = 0
+    count = 0
+    for p in range(px.shape[1]):
+        if not valid[t, p]:
+            continue
+        count += 1
+        u = int(np.rint(c * px[t, p] - s * py[t, p] + tx))
+        v = int(np.rint(s * px[t, p] + c * py[t, p] + ty))
+        if u < 0 or u >= w or v < 0 or v >= h:
+            continue
+        b = (bins[t, p] + tn) & (n_bins - 1)
+        acc_best += log_hit[b]
+        if bits[v, u] & wanted[b]:
+            acc += log_hit[b]
+            n_hit += 1
+        else:
+            acc += log_miss[b]
+    return acc, n_hit, count, acc_best
+
+
 @njit(cache=True, nogil=True)
 def lay_over(
     bits: NDArray[np.uint16], wanted: NDArray[np.uint16],
@@ -64,39 +97,14 @@ def lay_over(
         The llr had every sample inside the image found its edge.
     """
     n_pairs = len(rows)
-    n_pts = px.shape[1]
-    h, w = bits.shape
-    n_bins = len(wanted)
     llr = np.zeros(n_pairs)
     hits = np.zeros(n_pairs, np.int64)
     n_valid = np.zeros(n_pairs, np.int64)
     best = np.zeros(n_pairs)
     for i in range(n_pairs):
-        t = rows[i]
-        c, s, tx, ty, tn = cos_scale[i], sin_scale[i], x[i], y[i], turn[i]
-        acc = 0.0
-        acc_best = 0.0
-        n_hit = 0
-        count = 0
-        for p in range(n_pts):
-            if not valid[t, p]:
-                continue
-            count += 1
-            u = int(np.rint(c * px[t, p] - s * py[t, p] + tx))
-            v = int(np.rint(s * px[t, p] + c * py[t, p] + ty))
-            if u < 0 or u >= w or v < 0 or v >= h:
-                continue
-            b = (bins[t, p] + tn) & (n_bins - 1)
-            acc_best += log_hit[b]
-            if bits[v, u] & wanted[b]:
-                acc += log_hit[b]
-                n_hit += 1
-            else:
-                acc += log_miss[b]
-        llr[i] = acc
-        hits[i] = n_hit
-        n_valid[i] = count
-        best[i] = acc_best
+        llr[i], hits[i], n_valid[i], best[i] = _laid_template(
+            bits, wanted, px, py, bins, valid, rows[i], cos_scale[i], sin_scale[i], x[i], y[i],
+            turn[i], log_hit, log_miss)
     return llr, hits, n_valid, best
 
 
@@ -128,30 +136,13 @@ def lay_over_grid(
         Similarity-major: pair ``(s, j)`` at ``s * V + j``, the value
         :func:`lay_over` gives it.
     """
-    n_sims = len(x)
     n_views = len(views)
-    n_pts = px.shape[1]
-    h, w = bits.shape
-    n_bins = len(wanted)
-    llr = np.zeros(n_sims * n_views)
-    for k in range(n_sims):
-        c, s, tx, ty, tn = cos_scale[k], sin_scale[k], x[k], y[k], turn[k]
+    llr = np.zeros(len(x) * n_views)
+    for k in range(len(x)):
         for j in range(n_views):
-            t = views[j]
-            acc = 0.0
-            for p in range(n_pts):
-                if not valid[t, p]:
-                    continue
-                u = int(np.rint(c * px[t, p] - s * py[t, p] + tx))
-                v = int(np.rint(s * px[t, p] + c * py[t, p] + ty))
-                if u < 0 or u >= w or v < 0 or v >= h:
-                    continue
-                b = (bins[t, p] + tn) & (n_bins - 1)
-                if bits[v, u] & wanted[b]:
-                    acc += log_hit[b]
-                else:
-                    acc += log_miss[b]
-            llr[k * n_views + j] = acc
+            llr[k * n_views + j] = _laid_template(
+                bits, wanted, px, py, bins, valid, views[j], cos_scale[k], sin_scale[k], x[k],
+                y[k], turn[k], log_hit, log_miss)[0]
     return llr
 
 

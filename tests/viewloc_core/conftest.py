@@ -7,10 +7,12 @@ import pytest
 import trimesh
 
 from viewloc_core.camera import Camera
+from viewloc_core.contour_model import build_contour_model
 from viewloc_core.learn import LearningConfig, learn_from_mesh
 from viewloc_core.model import ObjectModel
 from viewloc_core.pose import Pose
 from viewloc_core.render import Light, Renderer, prepare
+from viewloc_core.view_sphere import subdivided_sphere
 
 
 def l_bracket() -> trimesh.Trimesh:
@@ -63,6 +65,16 @@ def bracket_model(bracket_mesh: trimesh.Trimesh) -> ObjectModel:
 def renderer():
     with Renderer() as r:
         yield r
+
+
+@pytest.fixture(scope="module")
+def bracket_contour_scene(renderer):
+    """The renderer, the ribbed bracket prepared for it and its contour
+    model on a level-2 view sphere (the refinement tests' scene)."""
+    mesh = ribbed_bracket()
+    dirs, _, _ = subdivided_sphere(2)
+    model = build_contour_model(mesh, dirs, renderer, 600.0, 600.0, (320, 320), 200)
+    return renderer, prepare(mesh), model
 
 
 def render_scene(

@@ -11,11 +11,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from tests.viewloc_core.conftest import ribbed_bracket
 from viewloc_core import robust
 from viewloc_core.camera import Camera
 from viewloc_core.contour_kernels import edge_residuals
-from viewloc_core.contour_model import build_contour_model
 from viewloc_core.gauss_newton_kernel import (
     _solve_cholesky,
     gauss_newton_level,
@@ -31,8 +29,6 @@ from viewloc_core.refine import (
     _search_priors,
     prepare_edges,
 )
-from viewloc_core.render import Renderer, prepare
-from viewloc_core.view_sphere import subdivided_sphere
 
 CAM = Camera(600.0, 600.0, 322.5, 237.5, 640, 480)
 
@@ -68,18 +64,8 @@ def test_tukey_weights_equal_the_array_form(seed, n):
     np.testing.assert_allclose(tukey_weights(r, 0.5), want, rtol=1e-12, atol=1e-15)
 
 
-@pytest.fixture(scope="module")
-def scene():
-    renderer = Renderer()
-    mesh = ribbed_bracket()
-    dirs, _, _ = subdivided_sphere(2)
-    model = build_contour_model(mesh, dirs, renderer, 600.0, 600.0, (320, 320), 200)
-    yield renderer, prepare(mesh), model
-    renderer.close()
-
-
-def test_nearest_view_equals_the_model(scene):
-    _, _, model = scene
+def test_nearest_view_equals_the_model(bracket_contour_scene):
+    _, _, model = bracket_contour_scene
     for seed in range(50):
         R = Rotation.random(random_state=seed).as_matrix()
         t = np.random.default_rng(seed).uniform(-200, 200, 3) + [0.0, 0.0, 500.0]
@@ -121,8 +107,8 @@ def _array_level(edges, camera, pose, model, opts, level):
 
 
 @pytest.mark.parametrize(("seed", "stride"), [(0, 1), (6, 2), (8, 1)])
-def test_a_level_equals_the_array_loop(scene, seed, stride):
-    renderer, prepared, model = scene
+def test_a_level_equals_the_array_loop(bracket_contour_scene, seed, stride):
+    renderer, prepared, model = bracket_contour_scene
     rng = np.random.default_rng(seed)
     truth = Pose(Rotation.random(random_state=seed).as_matrix(),
                  np.array([rng.uniform(-50, 50), rng.uniform(-30, 30), 600.0]))

@@ -7,13 +7,13 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from tests.viewloc_core.conftest import blob, ribbed_bracket
+from tests.viewloc_core.conftest import blob
 from viewloc_core.camera import Camera
 from viewloc_core.contour_model import build_contour_model
 from viewloc_core.errors import InvalidImageError, InvalidInputError
 from viewloc_core.pose import Pose, rotation_angle_deg
 from viewloc_core.refine import RefineOptions, prepare_edges, refine_pose
-from viewloc_core.render import Renderer, prepare
+from viewloc_core.render import prepare
 from viewloc_core.robust import median
 from viewloc_core.view_sphere import subdivided_sphere
 
@@ -31,16 +31,6 @@ def _clutter(rng: np.random.Generator) -> np.ndarray:
     return np.clip(bg + rng.normal(0, 6, bg.shape), 0, 255).astype(np.uint8)
 
 
-@pytest.fixture(scope="module")
-def scene():
-    renderer = Renderer()
-    mesh = ribbed_bracket()
-    dirs, _, _ = subdivided_sphere(2)
-    model = build_contour_model(mesh, dirs, renderer, 600.0, 600.0, (320, 320), 200)
-    yield renderer, prepare(mesh), model
-    renderer.close()
-
-
 def _perturbed(truth: Pose, rng: np.random.Generator, rot_deg: float, depth_frac: float) -> Pose:
     axis = rng.normal(size=3)
     dR = Rotation.from_rotvec(axis / np.linalg.norm(axis) * math.radians(rot_deg)).as_matrix()
@@ -52,8 +42,8 @@ def _perturbed(truth: Pose, rng: np.random.Generator, rot_deg: float, depth_frac
 # end-on views where the bracket is a bare rectangle leave rotations
 # unobservable and are not what this test is about.
 @pytest.mark.parametrize(("seed", "cluttered"), [(0, False), (6, False), (8, False), (7, True)])
-def test_converges_from_a_perturbed_pose(scene, seed, cluttered):
-    renderer, prepared, model = scene
+def test_converges_from_a_perturbed_pose(bracket_contour_scene, seed, cluttered):
+    renderer, prepared, model = bracket_contour_scene
     rng = np.random.default_rng(seed)
     truth = Pose(Rotation.random(random_state=seed).as_matrix(),
                  np.array([rng.uniform(-50, 50), rng.uniform(-30, 30), 600.0]))
@@ -74,8 +64,8 @@ def test_converges_from_a_perturbed_pose(scene, seed, cluttered):
     assert res.pose_std[5] == res.pose_std[3:].max()
 
 
-def test_wrong_pose_gets_a_low_inlier_fraction(scene):
-    renderer, prepared, model = scene
+def test_wrong_pose_gets_a_low_inlier_fraction(bracket_contour_scene):
+    renderer, prepared, model = bracket_contour_scene
     truth = Pose(Rotation.random(random_state=0).as_matrix(), np.array([0.0, 0.0, 600.0]))
     image = renderer.render(prepared, CAM, truth).color
     far = Pose(truth.R_m2c, truth.t_m2c + [150.0, 0.0, 0.0])
@@ -83,8 +73,8 @@ def test_wrong_pose_gets_a_low_inlier_fraction(scene):
     assert res.inlier_fraction < 0.3
 
 
-def test_shared_edge_pyramid_gives_the_same_result(scene):
-    renderer, prepared, model = scene
+def test_shared_edge_pyramid_gives_the_same_result(bracket_contour_scene):
+    renderer, prepared, model = bracket_contour_scene
     truth = Pose(Rotation.random(random_state=6).as_matrix(), np.array([0.0, 0.0, 600.0]))
     image = renderer.render(prepared, CAM, truth).color
     init = _perturbed(truth, np.random.default_rng(1), 3.0, 0.01)
@@ -97,16 +87,16 @@ def test_shared_edge_pyramid_gives_the_same_result(scene):
     assert rotation_angle_deg(c.pose.R_m2c, truth.R_m2c) < 1.0
 
 
-def test_bad_input(scene):
-    _, _, model = scene
+def test_bad_input(bracket_contour_scene):
+    _, _, model = bracket_contour_scene
     with pytest.raises(InvalidImageError):
         refine_pose(np.zeros((480, 640, 3), np.int32), CAM, Pose.identity(), model)
     with pytest.raises(InvalidInputError):
         refine_pose(np.zeros((100, 100), np.uint8), CAM, Pose.identity(), model)
 
 
-def test_chance_rate_is_higher_in_clutter_and_the_score_corrects_for_it(scene):
-    renderer, prepared, model = scene
+def test_chance_rate_is_higher_in_clutter_and_the_score_corrects_for_it(bracket_contour_scene):
+    renderer, prepared, model = bracket_contour_scene
     rng = np.random.default_rng(3)
     truth = Pose(Rotation.random(random_state=6).as_matrix(), np.array([0.0, 0.0, 600.0]))
     out = renderer.render(prepared, CAM, truth)
@@ -129,8 +119,8 @@ def test_chance_rate_is_higher_in_clutter_and_the_score_corrects_for_it(scene):
     assert far.support < 0
 
 
-def test_stops_when_the_contour_no_longer_moves(scene):
-    renderer, prepared, model = scene
+def test_stops_when_the_contour_no_longer_moves(bracket_contour_scene):
+    renderer, prepared, model = bracket_contour_scene
     truth = Pose(Rotation.random(random_state=0).as_matrix(), np.array([20.0, -10.0, 600.0]))
     image = renderer.render(prepared, CAM, truth).color
     init = _perturbed(truth, np.random.default_rng(2), 4.0, 0.02)
@@ -197,9 +187,9 @@ def test_dense_contour_views_keep_a_smooth_part_at_its_depth(renderer):
     assert worst_dz_mm[3] < 10.0 < 2.0 * worst_dz_mm[3] < worst_dz_mm[1]
 
 
-def test_a_fit_on_every_second_contour_point_converges_too(scene):
+def test_a_fit_on_every_second_contour_point_converges_too(bracket_contour_scene):
     # Short fits that compare starts use half the points (QUICK_REFINE).
-    renderer, prepared, model = scene
+    renderer, prepared, model = bracket_contour_scene
     rng = np.random.default_rng(0)
     truth = Pose(Rotation.random(random_state=0).as_matrix(),
                  np.array([rng.uniform(-50, 50), rng.uniform(-30, 30), 600.0]))
@@ -214,13 +204,13 @@ def test_a_fit_on_every_second_contour_point_converges_too(scene):
 
 
 @pytest.mark.parametrize("seed", [0, 1, 3, 7])
-def test_a_quick_fit_ends_where_the_full_fit_does(scene, seed):
+def test_a_quick_fit_ends_where_the_full_fit_does(bracket_contour_scene, seed):
     # The localizer compares starts by quick fits against full ones: a quick
     # fit that ends on the full-resolution level lands where its full fit
     # would (one that stopped on the coarse level fails all four cases).
     from viewloc_core.localize import FINAL_REFINE, QUICK_REFINE
 
-    renderer, prepared, model = scene
+    renderer, prepared, model = bracket_contour_scene
     rng = np.random.default_rng(seed)
     truth = Pose(Rotation.random(random_state=seed).as_matrix(),
                  np.array([rng.uniform(-50, 50), rng.uniform(-30, 30), 600.0]))
