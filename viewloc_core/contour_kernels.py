@@ -118,6 +118,27 @@ def project_contour(
 
 
 @njit(cache=True, nogil=True)
+def nearest_view(directions: F64, R: F64, t: F64) -> int:  # pragma: no cover - compiled
+    """Index of the view direction closest to where the camera sees from
+    (the ``-Rᵀ t`` of :meth:`viewloc_core.contour_model.ContourModel.nearest_view`;
+    the first of equals)."""
+    d = np.empty(3)
+    for k in range(3):
+        d[k] = -(R[0, k] * t[0] + R[1, k] * t[1] + R[2, k] * t[2])
+    if d[0] * d[0] + d[1] * d[1] + d[2] * d[2] < 1e-18:
+        for k in range(3):
+            d[k] = -R[2, k]
+    best = 0
+    best_dot = -np.inf
+    for v in range(directions.shape[0]):
+        dot = directions[v, 0] * d[0] + directions[v, 1] * d[1] + directions[v, 2] * d[2]
+        if dot > best_dot:
+            best_dot = dot
+            best = v
+    return best
+
+
+@njit(cache=True, nogil=True)
 def edge_residuals(
     grad: NDArray[np.float32], uv: F64, n2: F64, X: F64, t: F64, fx: float, fy: float,
     level: int, search: int, min_gradient: float, cos_max: float, prior: F64,
@@ -198,3 +219,4 @@ def warm_up() -> None:
                                 np.array([8.0, 8.0, 7.0, 7.0]))
     edge_residuals(np.zeros((16, 16, 2), np.float32), uv, n2, X, np.zeros(3), 100.0, 100.0, 0,
                    3, 0.02, 0.8, np.ones(5))
+    nearest_view(np.array([[0.0, 0.0, -1.0]]), np.eye(3), np.array([0.0, 0.0, 100.0]))

@@ -35,6 +35,7 @@ import trimesh
 from numpy.typing import NDArray
 
 from viewloc_core.camera import Camera
+from viewloc_core.contour_kernels import nearest_view
 from viewloc_core.errors import InvalidInputError, ModelFormatError
 from viewloc_core.pose import Pose
 from viewloc_core.view_sphere import view_rotation
@@ -121,10 +122,8 @@ class ContourModel:
         origin -> camera centre): it depends on the translation too, since an
         object off the optical axis is seen from the side.
         """
-        d = -pose.R_m2c.T @ pose.t_m2c
-        if float(d @ d) < 1e-18:
-            d = -pose.R_m2c[2]
-        return int((self.directions @ d).argmax())
+        return int(nearest_view(self.directions, np.ascontiguousarray(pose.R_m2c, np.float64),
+                                np.ascontiguousarray(pose.t_m2c, np.float64)))
 
     def view_points(self, view: int, kind: int | None = None,
                     ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:

@@ -19,7 +19,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from viewloc_core.contour_kernels import edge_residuals, project_contour
+from viewloc_core.contour_kernels import edge_residuals, nearest_view, project_contour
 from viewloc_core.robust import TUKEY_C
 
 F32 = NDArray[np.float32]
@@ -31,26 +31,6 @@ _MAD_TO_SIGMA = 1.4826
 #: Relative and absolute Levenberg damping of the normal equations' diagonal.
 _DAMPING_REL = 1e-3
 _DAMPING_ABS = 1e-9
-
-
-@njit(cache=True, nogil=True)
-def nearest_view(directions: F64, R: F64, t: F64) -> int:  # pragma: no cover - compiled
-    """Index of the view direction closest to where the camera sees from
-    (:meth:`viewloc_core.contour_model.ContourModel.nearest_view`)."""
-    d = np.empty(3)
-    for k in range(3):
-        d[k] = -(R[0, k] * t[0] + R[1, k] * t[1] + R[2, k] * t[2])
-    if d[0] * d[0] + d[1] * d[1] + d[2] * d[2] < 1e-18:
-        for k in range(3):
-            d[k] = -R[2, k]
-    best = 0
-    best_dot = -np.inf
-    for v in range(directions.shape[0]):
-        dot = directions[v, 0] * d[0] + directions[v, 1] * d[1] + directions[v, 2] * d[2]
-        if dot > best_dot:
-            best_dot = dot
-            best = v
-    return best
 
 
 @njit(cache=True, nogil=True)

@@ -727,8 +727,8 @@ def _best_rival(
     # A quick fit runs a few iterations on half the points, so its rank is
     # not quite on the full fit's scale: it can fall short of the fit it
     # competes with even where its full fit would rank higher. On a
-    # near-symmetric part, whose rival fits
-    # rank within hundredths of each other, the best few starts always get
+    # near-symmetric part, whose rival fits rank within hundredths of each
+    # other, the best few starts always get
     # their full fits (hard bench set, free-form part, models learned with
     # seeds 0/1/2, the best one: 6D right in 23/20/19 -> 24/22/19 of 40
     # images); on other parts the best one does when it ranks higher.

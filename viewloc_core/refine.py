@@ -441,15 +441,6 @@ class _Step:
         )
 
 
-def _apply(pose: Pose, delta: Array) -> Pose:
-    # cv2.Rodrigues: the same rotation vector -> matrix as scipy's, ~20x faster
-    # on one vector (this runs once per Gauss-Newton step). The product of
-    # rotations drifts from one by an ulp per step; _reorthonormalized
-    # removes that once at the end.
-    dR, _ = cv2.Rodrigues(delta[:3].reshape(3, 1))
-    return Pose(dR @ pose.R_m2c, pose.t_m2c + delta[3:])
-
-
 _ONE_AND_HALF_I = 1.5 * np.eye(3)
 
 
@@ -506,14 +497,13 @@ def refine_pose(
     pose = _align_shift(pose_init, projector, edges, min(1, n_levels - 1), opts)
     iterations = 0
     last = _Step()
-    model = contour_model
     cos_max = math.cos(math.radians(opts.max_angle_deg))
     for level in range(n_levels - 1, -1, -1):
         search = int(opts.search_px[level])
         R, t, done, step = gauss_newton_level(
-            edges.gradients[level], model.points_obj, model.normals_obj, model.counts,
-            model.directions, opts.point_stride, pose.R_m2c, pose.t_m2c,
-            projector.intrinsics, projector.dist, projector.distorted,
+            edges.gradients[level], contour_model.points_obj, contour_model.normals_obj,
+            contour_model.counts, contour_model.directions, opts.point_stride, pose.R_m2c,
+            pose.t_m2c, projector.intrinsics, projector.dist, projector.distorted,
             projector.window(1.0), level, search, int(opts.iterations[level]),
             opts.min_gradient, cos_max, _search_priors(search), opts.tol_px,
             opts.tol_rot_deg, opts.tol_trans_mm)
