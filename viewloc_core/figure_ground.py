@@ -23,6 +23,8 @@ locations median 0.01-0.02).
 
 from __future__ import annotations
 
+import math
+
 import cv2
 import numpy as np
 from numpy.typing import NDArray
@@ -52,6 +54,10 @@ DARK_OFFSET = 4.0 / 255.0
 
 #: Fewest pixels inside and in the ring for a comparison.
 MIN_PIXELS = 20
+
+#: Largest image diameter (px) of a part ringed on every pixel; a larger
+#: one is ringed on a coarser grid (no bench part is over 400 px).
+MAX_RING_DIAMETER_PX = 512
 
 
 def _full_scale(dtype: np.dtype) -> float:
@@ -84,18 +90,26 @@ def _ring_pixels(camera: Camera, pose: Pose, samples: SurfaceSamples,
     z = points[:, 2]
     if len(points) == 0 or float(z.min()) <= 0.0:
         return None
-    height, width_img = rgb.shape[:2]
     depth = float(np.median(z))
     diameter_px = camera.fx * samples.extent_mm / depth
-    if diameter_px > 2 * max(height, width_img):
+    if diameter_px > 2 * max(rgb.shape[:2]):
         return None  # the part would fill the view: no surroundings to compare
-    gap = max(2, round(RING_GAP_SHARE * diameter_px))
-    width = max(3, round(RING_WIDTH_SHARE * diameter_px))
+    uv = camera.project(points)
+    # A part larger than MAX_RING_DIAMETER_PX (a large camera image) is
+    # ringed on every step-th pixel: the ring is a share of the part's
+    # size and the histogram a share of its pixels, so the contrast stays
+    # while the cost stops growing with the part's area.
+    step = max(1, math.ceil(diameter_px / MAX_RING_DIAMETER_PX))
+    if step > 1:
+        rgb = rgb[::step, ::step]
+        uv = uv / step
+    height, width_img = rgb.shape[:2]
+    gap = max(2, round(RING_GAP_SHARE * diameter_px / step))
+    width = max(3, round(RING_WIDTH_SHARE * diameter_px / step))
     # The samples are spacing_mm apart on the surface: discs that wide
     # join into the silhouette.
-    dot = max(1, round(camera.fx * samples.spacing_mm / depth))
+    dot = max(1, round(camera.fx * samples.spacing_mm / depth / step))
     margin = gap + width + dot + 1
-    uv = camera.project(points)
     # The box around the projected part, no larger than the image and the
     # ring beside it (a sample projected far outside counts at its edge).
     lo = np.array([-margin, -margin])

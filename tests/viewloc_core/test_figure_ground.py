@@ -87,3 +87,36 @@ def test_a_part_almost_at_the_lens_gives_no_contrast_or_a_bounded_one(scene):
         near = Pose(pose.R_m2c, np.array([0.0, 0.0, depth_mm]))
         contrast = figure_ground_contrast(image, CAM, near, samples)
         assert contrast is None or 0.0 <= contrast <= 1.0
+
+
+@pytest.mark.parametrize("step", [2, 3, 5])
+def test_a_large_part_is_ringed_on_a_coarser_grid_with_the_same_contrast(scene, monkeypatch,
+                                                                         step):
+    # As if the part were `step` times over the largest diameter ringed on
+    # every pixel (a large camera image): its ring is read on every
+    # step-th pixel, and part and shadow still compare as on every pixel.
+    from viewloc_core import figure_ground
+
+    samples, pose, mask, ground, part = scene
+    with_part = _with_part(ground, mask, part)
+    shadow = ground.copy()
+    shadow[mask] = (0.4 * ground[mask]).astype(np.uint8)
+    full = figure_ground_contrast(with_part, CAM, pose, samples)
+    diameter_px = CAM.fx * samples.extent_mm / pose.t_m2c[2]
+    monkeypatch.setattr(figure_ground, "MAX_RING_DIAMETER_PX", diameter_px / (step - 0.5))
+    seen = []
+    original = figure_ground._ring_pixels
+
+    def ring_pixels(*args):
+        pixels = original(*args)
+        seen.append(len(pixels))
+        return pixels
+
+    monkeypatch.setattr(figure_ground, "_ring_pixels", ring_pixels)
+    coarse = figure_ground_contrast(with_part, CAM, pose, samples)
+    assert coarse == pytest.approx(full, abs=0.05) and coarse > 0.3
+    assert figure_ground_contrast(shadow, CAM, pose, samples) < 0.05
+    # The ring was read on the coarser grid: about step² fewer pixels.
+    monkeypatch.setattr(figure_ground, "MAX_RING_DIAMETER_PX", 10 * diameter_px)
+    figure_ground_contrast(with_part, CAM, pose, samples)
+    assert seen[-1] / seen[0] == pytest.approx(step**2, rel=0.35)
