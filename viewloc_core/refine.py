@@ -37,6 +37,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from viewloc_core.both_cores import each_on_both
 from viewloc_core.camera import Camera
 from viewloc_core.contour_kernels import edge_residuals, project_contour
 from viewloc_core.contour_model import ContourModel
@@ -104,6 +105,37 @@ def _as_float_image(image: NDArray[np.generic]) -> NDArray[np.float32]:
     return np.ascontiguousarray(out)
 
 
+#: Images of at least this many pixels have their gradient computed in two
+#: bands of rows, one per core (a 5 MP camera image's full-resolution level
+#: is about 70 ms of work, and the request waits for it once its search is
+#: done).
+BANDED_GRADIENT_MIN_PX = 1_000_000
+
+
+def _interleaved_gradient(img: NDArray[np.float32]) -> NDArray[np.float32]:
+    """(H, W, 2) float32 :func:`image_gradient` of a float image, interleaved.
+
+    A large image is done as two bands of rows on both cores, each with a
+    row of the other beside it for the 3x3 Sobel: the same values as in one
+    pass.
+    """
+    height, width = img.shape[:2]
+    if height * width < BANDED_GRADIENT_MIN_PX or height < 4:
+        gx, gy = image_gradient(img)
+        return np.asarray(cv2.merge([gx, gy]), dtype=np.float32)
+    out = np.empty((height, width, 2), np.float32)
+
+    def band(rows: tuple[int, int]) -> None:
+        r0, r1 = rows
+        lo = max(r0 - 1, 0)
+        gx, gy = image_gradient(img[lo:min(r1 + 1, height)])
+        out[r0:r1, :, 0] = gx[r0 - lo:r1 - lo]
+        out[r0:r1, :, 1] = gy[r0 - lo:r1 - lo]
+
+    each_on_both(band, [(0, height // 2), (height // 2, height)])
+    return out
+
+
 def prepare_edges(image: NDArray[np.generic], levels: int = 3) -> EdgePyramid:
     """Gradient pyramid of an image (grey or colour, uint8 or uint16).
 
@@ -129,8 +161,7 @@ def prepare_edges(image: NDArray[np.generic], levels: int = 3) -> EdgePyramid:
     for level in range(levels):
         if level > 0:
             current = np.asarray(cv2.pyrDown(current), dtype=np.float32)
-        gx, gy = image_gradient(current)
-        grads.append(np.asarray(cv2.merge([gx, gy]), dtype=np.float32))
+        grads.append(_interleaved_gradient(current))
         if min(current.shape[:2]) < 16:
             break
     return EdgePyramid(grads, int(img.shape[1]), int(img.shape[0]))

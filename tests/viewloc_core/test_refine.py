@@ -156,6 +156,20 @@ def test_colour_gradient_takes_the_strongest_channel_per_pixel():
     assert edges.gradients[1].shape == (20, 28, 2)
 
 
+@pytest.mark.parametrize(("shape", "channels"), [((41, 30), 3), ((40, 31), 1), ((9, 12), 3)])
+def test_a_large_image_in_two_bands_has_the_one_pass_gradient(monkeypatch, shape, channels):
+    from viewloc_core import refine
+
+    rng = np.random.default_rng(5)
+    image = rng.integers(0, 256, (*shape, channels), dtype=np.uint8).squeeze()
+    one_pass = prepare_edges(image, 2)
+    # As if the image were a large camera's: both levels go in two bands.
+    monkeypatch.setattr(refine, "BANDED_GRADIENT_MIN_PX", 1)
+    banded = prepare_edges(image, 2)
+    for a, b in zip(one_pass.gradients, banded.gradients, strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
 @pytest.mark.parametrize("n", [1, 2, 7, 200, 201])
 def test_median_equals_numpy(n):
     values = np.random.default_rng(n).normal(size=n)
