@@ -24,7 +24,8 @@ _POOL = ThreadPoolExecutor(max_workers=1, thread_name_prefix="viewloc-halves")
 
 #: The worker of :func:`each_on_both`, apart from ``_POOL``: an item's work
 #: may itself split its hypotheses in halves, and a single worker waiting
-#: for a task queued behind itself would wait for ever.
+#: for a task queued behind itself would wait for ever (see also the
+#: cancel in :func:`each_on_both`).
 _ITEM_POOL = ThreadPoolExecutor(max_workers=1, thread_name_prefix="viewloc-items")
 
 Item = TypeVar("Item")
@@ -99,5 +100,9 @@ def each_on_both(work: Callable[[Item], Result], items: Sequence[Item]) -> list[
     try:
         drain()
     finally:
-        other.result()
+        # Every item is done or being done. A worker that never started is
+        # not waited for: it may be this very thread (a call made from an
+        # item of another call), which would wait for itself.
+        if not other.cancel():
+            other.result()
     return results  # type: ignore[return-value]  # every slot was filled

@@ -76,3 +76,24 @@ def test_each_on_both_uses_the_other_thread_and_passes_errors_on() -> None:
 
     with pytest.raises(ValueError, match="item 2"):
         each_on_both(fails, [0, 1, 2, 3])
+
+
+def test_each_on_both_called_from_its_own_worker_does_not_wait_for_itself() -> None:
+    # An item's work calls each_on_both again (a refinement given a large
+    # image builds its edges in bands): whichever thread runs it, it ends.
+    def inner(x: int) -> int:
+        return x * 10
+
+    def outer(x: int) -> list[int]:
+        return each_on_both(inner, [x, x + 1, x + 2])
+
+    done = threading.Event()
+    result: list[list[list[int]]] = []
+
+    def run() -> None:
+        result.append(each_on_both(outer, [1, 5]))
+        done.set()
+
+    threading.Thread(target=run, daemon=True).start()
+    assert done.wait(10.0)
+    assert result[0] == [[10, 20, 30], [50, 60, 70]]
