@@ -6,6 +6,10 @@ the other core has little to do (the refinement's edge pyramid, built there
 meanwhile, takes about a quarter of the time), so the hypotheses are cut in
 two halves: one goes to a worker thread, the calling thread does the other.
 Results are the same as one call over all of them, in the same order.
+
+A few items of uneven cost (a localization's pose fits, the bands of a
+large image's gradient) are instead taken in turn by the two threads
+(:func:`each_on_both`), so that neither waits while the other has two.
 """
 
 from __future__ import annotations

@@ -1045,6 +1045,7 @@ def localize(
         shading = _Shading(arr, *surface, colour)
     else:
         colour = None
+
     def fit(loc: _Located) -> _Fitted:
         return _final_detection(model, loc, level, factor, camera, edges, contour,
                                 index.view_radius_px, shading)

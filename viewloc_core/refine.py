@@ -18,6 +18,10 @@ The paper's "scene-based tracking", done the way edge-based trackers do it
 4. iterate; coarse to fine over an image pyramid (larger capture range at the
    coarse levels, full precision at the finest).
 
+Steps 1-4 of one pyramid level run as one compiled call
+(:func:`viewloc_core.gauss_newton_kernel.gauss_newton_level`); this module
+prepares the pyramid, shifts the start, and measures the final pose.
+
 Colour images: the gradient is taken per channel and, per pixel, the channel
 with the largest gradient magnitude is kept (an edge between two colours of
 equal brightness vanishes in grey). Uncertainty: the inverse Gauss-Newton
