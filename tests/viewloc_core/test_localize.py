@@ -15,6 +15,7 @@ from viewloc_core.detection import Detection, Similarity2D
 from viewloc_core.learn import LearningConfig, learn_from_mesh
 from viewloc_core.localize import (
     COLOUR_WEIGHT,
+    EVIDENCE_WEIGHT,
     FIGURE_GROUND_FULL,
     FIGURE_GROUND_WEIGHT,
     FIRST_FIT_MIN_FIGURE_GROUND,
@@ -22,6 +23,7 @@ from viewloc_core.localize import (
     MIN_COLOUR_AGREEMENT,
     MIN_COLOUR_RANK,
     SPARE_MIN_CHANCE_CORRECTED,
+    SPARE_MIN_CHANCE_CORRECTED_IN_COLOUR,
     LocalizeOptions,
     _convincing,
     _FitOptions,
@@ -97,22 +99,23 @@ def test_a_part_in_fog_is_found_as_in_clear_air(renderer, bracket_mesh, bracket_
                         lambda edges, centre, radius, ceiling: ceiling)
     assert found() <= 1
 
-def _fit(score: float, refined: bool, tag: int, chance_corrected: float | None = None
-         ) -> _Fitted:
+def _fit(score: float, refined: bool, tag: int, chance_corrected: float | None = None,
+         evidence: float = 100.0) -> _Fitted:
     """A fitted location told apart by its model view."""
     return _Fitted(Detection(score=score, log_probability=0.0, model_view=tag, azimuth_deg=0.0,
                              polar_deg=0.0, similarity=Similarity2D(0.0, 0.0, 0.0, 1.0),
                              pose=Pose(np.eye(3), np.array([0.0, 0.0, 500.0])),
-                             refined=refined), chance_corrected)
+                             refined=refined), chance_corrected, evidence=evidence)
 
 
-def test_confirmed_fits_rank_first_then_refined_by_chance_then_the_view_search_order() -> None:
-    # In the view search's order: confirmed fits go first by score; other
-    # refined fits by their chance-corrected inlier fraction, not by the
-    # plain one (texture); failed refinements last, in the given order.
+def test_refined_fits_rank_by_chance_corrected_fraction_then_failed_in_the_view_search_order(
+) -> None:
+    # At equal evidence, refined fits go by their chance-corrected inlier
+    # fraction, not by the plain one (texture); failed refinements last,
+    # in the given order.
     in_evidence_order = [
         _fit(0.62, False, 0),
-        _fit(0.70, True, 1, chance_corrected=0.40),  # refined, below GOOD_FIT_FRACTION
+        _fit(0.70, True, 1, chance_corrected=0.40),
         _fit(0.88, True, 2, chance_corrected=0.85),
         _fit(0.95, True, 3, chance_corrected=0.93),
         _fit(0.55, False, 4),
@@ -124,7 +127,23 @@ def test_confirmed_fits_rank_first_then_refined_by_chance_then_the_view_search_o
     scores = [d.score for d in ranked]
     assert scores == [0.95, 0.88, 0.66, 0.66, 0.62, 0.55]
     assert sorted(scores, reverse=True) == scores
-    assert GOOD_FIT_FRACTION <= 0.88
+
+
+def test_a_fit_at_a_place_the_view_search_barely_supports_loses_to_the_right_one() -> None:
+    # A refinement started at a wrong place can settle on clutter and
+    # confirm a little more of its contour than the part's fit; the view
+    # search's evidence for the place (a third of the best) decides.
+    right = _fit(0.90, True, 0, chance_corrected=0.86, evidence=270.0)
+    clutter = _fit(0.96, True, 1, chance_corrected=0.95, evidence=90.0)
+    assert [d.model_view for d in _ranked([right, clutter])] == [0, 1]
+    assert [d.model_view for d in _ranked([clutter, right])] == [0, 1]
+    # A clearly better contour still wins at less evidence.
+    better = _fit(0.99, True, 2, chance_corrected=0.86 + EVIDENCE_WEIGHT * 2 / 3 + 0.02,
+                  evidence=90.0)
+    assert [d.model_view for d in _ranked([right, better])] == [2, 0]
+    # Only the shares count: scaling every evidence changes nothing.
+    assert [d.model_view for d in _ranked([replace(right, evidence=2.7),
+                                           replace(clutter, evidence=0.9)])] == [0, 1]
 
 
 def _coloured(fit: _Fitted, agreement: float | None, expected: float = 0.8) -> _Fitted:
@@ -175,6 +194,12 @@ def test_a_spare_location_competes_only_with_a_convincing_refinement() -> None:
     assert not _convincing(_fit(0.95, False, 0))
     assert not _convincing(_fit(0.90, True, 1, chance_corrected=SPARE_MIN_CHANCE_CORRECTED - 0.01))
     assert _convincing(_fit(0.75, True, 2, chance_corrected=SPARE_MIN_CHANCE_CORRECTED))
+    # In a colour scene, whose colour proposes locations of its own, the bar is higher.
+    assert SPARE_MIN_CHANCE_CORRECTED_IN_COLOUR > SPARE_MIN_CHANCE_CORRECTED
+    assert not _convincing(_fit(0.75, True, 2, chance_corrected=SPARE_MIN_CHANCE_CORRECTED),
+                           in_colour=True)
+    assert _convincing(_fit(0.8, True, 3, chance_corrected=SPARE_MIN_CHANCE_CORRECTED_IN_COLOUR),
+                       in_colour=True)
 
 
 def test_a_fit_that_stands_out_from_its_surroundings_outranks_a_shadow_like_one() -> None:
@@ -188,7 +213,7 @@ def test_a_fit_that_stands_out_from_its_surroundings_outranks_a_shadow_like_one(
     texture = replace(_fit(0.75, True, 2, chance_corrected=0.70), figure_ground=0.0)
     faint = replace(_fit(0.72, True, 3, chance_corrected=0.65), figure_ground=0.2)
     assert [d.model_view for d in _ranked([texture, faint])] == [3, 2]
-    better = replace(_fit(0.93 + FIGURE_GROUND_WEIGHT + 0.01, True, 4, chance_corrected=0.95),
+    better = replace(_fit(0.99, True, 4, chance_corrected=0.92 + FIGURE_GROUND_WEIGHT + 0.01),
                      figure_ground=0.0)
     assert [d.model_view for d in _ranked([part, better])] == [4, 1]
     # A contrast beyond FIGURE_GROUND_FULL counts no more; none counts nothing.
