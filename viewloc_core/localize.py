@@ -138,8 +138,8 @@ MIN_ALIGNED_LOCATIONS = 4
 #: images, two spares competing without it 6 with a detection, with 0.6
 #: 3, first fits alone 2. Right spares confirm less in clutter than the
 #: first fits (hard set: 0.56-0.6 in some); over the hard set's five
-#: learning seeds 0.7 kept 3 fewer right detections than 0.6 (of 400;
-#: measured on all fits, ``/tmp/s27/rules.py``).
+#: learning seeds 0.7 kept 2 fewer right detections than 0.6 (of 400,
+#: replayed on recorded fits).
 SPARE_MIN_CHANCE_CORRECTED = 0.6
 
 #: A confirmed first fit still gets a spare beside it when its figure-ground
@@ -152,8 +152,8 @@ FIRST_FIT_MIN_FIGURE_GROUND = 0.05
 #: Locations fitted beside the first ones when one of those is not settled
 #: (see ``localize``). With every located place fitted (hard bench set,
 #: learning seeds 0-4, 400 images), a fit near the part was among them in
-#: 374 images, but the first fit in the view search's order was the right
-#: one in only 348: the next one or two locations hold most of the rest.
+#: 374 images; the first fit and one spare found it in 348, and the next
+#: one or two locations hold most of the rest.
 SPARE_LOCATIONS = 2
 
 #: In a colour scene the part's colour proposes locations of its own, fitted
@@ -928,22 +928,21 @@ def _evidence_share(fit: _Fitted, best: float) -> float:
 def _ranked(fits: list[_Fitted], by_colour: bool = False) -> list[Detection]:
     """Detections best first, given in the view search's evidence order.
 
-    Refined fits come first, ranked by their chance-corrected inlier
-    fraction plus :data:`EVIDENCE_WEIGHT` times their location's view-search
-    evidence as a share of the best fit's. A plain inlier fraction is high
-    wherever texture offers edges of any orientation (hard bench set,
-    640x480 textured: ranked by it rather than in the view search's order,
-    a wrong place beat the right one in 3 more of 80 images). Corrected for
-    chance it is still not enough alone: a refinement started at a wrong
-    place can settle on clutter and confirm its contour as well as the part
-    (hard set, learning seeds 0-4, every located place fitted: of 400
-    images the right fit ranked first in 330 by the corrected fraction and
-    the figure-ground bonus alone, 370 with the evidence; the wrong fits
-    that won had a median third of the right location's evidence and hit
-    fractions of 0.1-0.4, the right ones 0.7-1.0). The evidence weighs how
-    well the training views explain the place before any fit, each edge
-    sample against the image's own edge density. Fits whose refinement
-    failed come last, in the view search's order.
+    Refined fits come first, ranked by their chance-corrected inlier fraction
+    plus :data:`EVIDENCE_WEIGHT` times their location's view-search evidence as
+    a share of the best fit's. A plain inlier fraction is high wherever texture
+    offers edges of any orientation (hard bench set, 640x480 textured: ranked
+    by it rather than in the view search's order, a wrong place beat the right
+    one in 3 more of 80 images). Corrected for chance it is still not enough
+    alone: a refinement started at a wrong place can settle on clutter and
+    confirm its contour as well as the part (hard set, learning seeds 0-4,
+    every located place fitted: of 400 images the right fit ranked first in 330
+    by the former key, confirmed fits by their plain fraction first, and in 370
+    with the evidence; the 46 wrong fits that won had a median 0.57 of the
+    right location's evidence and hit fractions of median 0.5, the right ones
+    0.87). The evidence weighs how well the training views explain the place
+    before any fit, each edge sample against the image's own edge density. Fits
+    whose refinement failed come last, in the view search's order.
     With ``by_colour`` (a colour cue), fits whose visible surface the
     part's colours do not explain (:data:`MIN_COLOUR_AGREEMENT`) or whose
     contour and colour together fall short (:data:`MIN_COLOUR_RANK`) are
