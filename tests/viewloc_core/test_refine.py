@@ -87,6 +87,34 @@ def test_shared_edge_pyramid_gives_the_same_result(bracket_contour_scene):
     assert rotation_angle_deg(c.pose.R_m2c, truth.R_m2c) < 1.0
 
 
+def test_the_polishing_stage_is_a_last_narrow_search_on_the_finest_level(
+        bracket_contour_scene):
+    # polish_px runs one more finest-level stage with its own search and
+    # step budget: the same as refining the unpolished result again on the
+    # finest level alone with that search (no shift search).
+    renderer, prepared, model = bracket_contour_scene
+    truth = Pose(Rotation.random(random_state=4).as_matrix(), np.array([20.0, -10.0, 650.0]))
+    rng = np.random.default_rng(5)
+    image = _clutter(rng)
+    out = renderer.render(prepared, CAM, truth)
+    image[out.mask] = out.color[out.mask]
+    edges = prepare_edges(image, 2)
+    init = _perturbed(truth, rng, 3.0, 0.02)
+    polished = refine_pose(edges, CAM, init, model, RefineOptions(polish_px=3,
+                                                                  polish_iterations=5))
+    plain = refine_pose(edges, CAM, init, model, RefineOptions())
+    again = refine_pose(edges, CAM, plain.pose, model, RefineOptions(
+        levels=1, search_px=(3,), iterations=(5,), shift_search_px=0.0))
+    np.testing.assert_allclose(polished.pose.matrix, again.pose.matrix, atol=1e-6)
+    assert again.iterations > 0
+    assert polished.iterations == plain.iterations + again.iterations
+    assert polished.inlier_fraction == pytest.approx(again.inlier_fraction)
+    assert rotation_angle_deg(polished.pose.R_m2c, truth.R_m2c) < 1.0
+    for bad in ({"polish_px": -1}, {"polish_iterations": 0}):
+        with pytest.raises(InvalidInputError):
+            RefineOptions(**bad)
+
+
 def test_bad_input(bracket_contour_scene):
     _, _, model = bracket_contour_scene
     with pytest.raises(InvalidImageError):
