@@ -24,6 +24,7 @@ from viewloc_core.localize import (
     MIN_COLOUR_RANK,
     SPARE_MIN_CHANCE_CORRECTED,
     SPARE_MIN_CHANCE_CORRECTED_IN_COLOUR,
+    SPARE_MIN_EVIDENCE_SHARE,
     LocalizeOptions,
     _convincing,
     _FitOptions,
@@ -33,6 +34,7 @@ from viewloc_core.localize import (
     _pose_centred,
     _ranked,
     _settled,
+    _spare_locations,
     _view_candidate_count,
     localize,
 )
@@ -186,6 +188,24 @@ def test_a_fits_colour_counts_against_what_the_parts_own_colours_get_in_the_scen
     other = _fit(0.80, True, 1, chance_corrected=0.7)
     ranked = _ranked([_coloured(fit, 0.5, 0.55), _coloured(other, 0.6, 0.55)], by_colour=True)
     assert [d.model_view for d in ranked] == [1, 0]
+
+
+def test_spare_locations_are_the_next_ones_with_enough_of_the_best_evidence() -> None:
+    sim = np.array([100.0, 100.0, 0.0, 1.0])
+
+    def located(evidence: float) -> _Located:
+        return _Located(Match2D(0, sim, 0.0, 0.9, 10, evidence),
+                        [ViewCandidate(0, sim, evidence, 0.9)])
+
+    # Best first, as the view search ranks them.
+    best = 300.0
+    places = [located(e) for e in (best, 250.0, SPARE_MIN_EVIDENCE_SHARE * best,
+                                   0.99 * SPARE_MIN_EVIDENCE_SHARE * best, 100.0)]
+    assert _spare_locations(places, 1, 2) == places[1:3]
+    assert _spare_locations(places, 1, 3) == places[1:3]
+    assert _spare_locations(places, 2, 3) == [places[2]]
+    assert _spare_locations(places, 5, 2) == []
+    assert _spare_locations([], 1, 2) == []
 
 
 def test_a_spare_location_competes_only_with_a_convincing_refinement() -> None:
