@@ -130,7 +130,8 @@ TWIN_REFINE = replace(QUICK_REFINE, shift_search_px=0.0)
 GOOD_FIT_FRACTION = 0.85
 
 #: Spare image locations are searched only with at least this share of the
-#: best location's alignment evidence (see ``localize``).
+#: best location's alignment evidence (see ``localize``); they are fitted
+#: only with SPARE_MIN_VIEW_EVIDENCE_SHARE of the best view-search evidence.
 SPARE_EVIDENCE_SHARE = 0.5
 
 #: The alignment proposes at least this many locations (more when more
@@ -177,14 +178,16 @@ SPARE_LOCATIONS_IN_COLOUR = 1
 SPARE_MIN_CHANCE_CORRECTED_IN_COLOUR = 0.7
 
 #: A spare location is fitted only when its view search found at least this
-#: share of the best location's evidence: ranked with EVIDENCE_WEIGHT, one
-#: with less starts 0.12 behind and practically never wins. Hard bench set,
+#: share of the best location's evidence (SPARE_EVIDENCE_SHARE is the
+#: alignment's gate before the search): ranked with EVIDENCE_WEIGHT, one with
+#: less starts EVIDENCE_WEIGHT x (1 - share) behind (0.12) and practically
+#: never wins. Hard bench set,
 #: learning seeds 0-4, and paper set: identical accuracy, object-free paper
 #: images with a detection 4 -> 3 of 10; hard seed 2, mean time per image
 #: 61.1 -> 58.9 ms, 90th percentile 102 -> 85-95 ms (alternating runs).
 #: LM-O ape, can, cat: AR identical (one can photo fewer in 2D). Replayed on
 #: recorded fits, shares of 0.4-0.7 lost no right detection.
-SPARE_MIN_EVIDENCE_SHARE = 0.6
+SPARE_MIN_VIEW_EVIDENCE_SHARE = 0.6
 
 #: Weight of a location's view-search evidence, as a share of the best
 #: fitted location's, in the ranking of fits without a colour cue (see
@@ -942,11 +945,11 @@ def _colour_rank(fit: _Fitted) -> float:
 
 def _spare_locations(located: list[_Located], first: int, count: int) -> list[_Located]:
     """The spare locations: of the ``count`` after the first ``first`` (best
-    first), those with at least SPARE_MIN_EVIDENCE_SHARE of the best one's
-    evidence."""
+    first), those with at least SPARE_MIN_VIEW_EVIDENCE_SHARE of the best
+    one's evidence."""
     if not located:
         return []
-    floor = SPARE_MIN_EVIDENCE_SHARE * located[0].evidence
+    floor = SPARE_MIN_VIEW_EVIDENCE_SHARE * located[0].evidence
     return [loc for loc in located[first: first + count] if loc.evidence >= floor]
 
 

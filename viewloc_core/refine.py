@@ -16,7 +16,8 @@ The paper's "scene-based tracking", done the way edge-based trackers do it
    line residuals ``n·(π(X) - q)`` over 6 parameters: a rotation about the
    object origin and a translation, both in camera axes;
 4. iterate; coarse to fine over an image pyramid (larger capture range at the
-   coarse levels, full precision at the finest).
+   coarse levels, full precision at the finest), optionally ending with a
+   narrower search on the finest level (``RefineOptions.polish_px``).
 
 Steps 1-4 of one pyramid level run as one compiled call
 (:func:`viewloc_core.gauss_newton_kernel.gauss_newton_level`); this module
@@ -221,7 +222,12 @@ class RefineOptions:
         nearer) to meet them. Seen in fog, where the edge floor is low
         (hard bench set, bracket refined from its true pose: 3 of 13 fogged
         views ended 1.0-4.3 % too near, none of the 27 clear ones; polished
-        at 4 px, 0.6, 1.0 and 1.4 %).
+        at 4 px, 0.6, 1.0 and 1.4 %). The finest level's own search also
+        shrinks as its pose settles (to ``ceil(4 median |r| + 2)`` px, see
+        :func:`viewloc_core.gauss_newton_kernel.gauss_newton_level`); the
+        figures before polishing are with that shrink, which did not remove
+        the drift. Whether a tighter shrink rule could replace this stage
+        was not measured.
     polish_iterations : int
         Most Gauss-Newton steps of the polishing stage.
     """

@@ -24,7 +24,7 @@ from viewloc_core.localize import (
     MIN_COLOUR_RANK,
     SPARE_MIN_CHANCE_CORRECTED,
     SPARE_MIN_CHANCE_CORRECTED_IN_COLOUR,
-    SPARE_MIN_EVIDENCE_SHARE,
+    SPARE_MIN_VIEW_EVIDENCE_SHARE,
     LocalizeOptions,
     _convincing,
     _FitOptions,
@@ -199,8 +199,8 @@ def test_spare_locations_are_the_next_ones_with_enough_of_the_best_evidence() ->
 
     # Best first, as the view search ranks them.
     best = 300.0
-    places = [located(e) for e in (best, 250.0, SPARE_MIN_EVIDENCE_SHARE * best,
-                                   0.99 * SPARE_MIN_EVIDENCE_SHARE * best, 100.0)]
+    places = [located(e) for e in (best, 250.0, SPARE_MIN_VIEW_EVIDENCE_SHARE * best,
+                                   0.99 * SPARE_MIN_VIEW_EVIDENCE_SHARE * best, 100.0)]
     assert _spare_locations(places, 1, 2) == places[1:3]
     assert _spare_locations(places, 1, 3) == places[1:3]
     assert _spare_locations(places, 2, 3) == [places[2]]
