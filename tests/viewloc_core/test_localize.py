@@ -251,6 +251,10 @@ def test_a_confirmed_fit_that_looks_like_its_surroundings_gets_a_spare_beside_it
     assert _settled(_fit(0.95, True, 0, chance_corrected=0.9))
     assert not _settled(replace(_fit(GOOD_FIT_FRACTION - 0.01, True, 0, chance_corrected=0.8),
                                 figure_ground=0.5))
+    # On texture a wrong fit confirms its contour plainly, not beyond chance.
+    assert not _settled(replace(_fit(0.95, True, 0,
+                                     chance_corrected=GOOD_FIT_FRACTION - 0.01),
+                                figure_ground=0.5))
 
 
 def test_a_smooth_part_is_turned_the_right_way_by_its_shading(renderer, monkeypatch):
