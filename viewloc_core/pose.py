@@ -9,6 +9,7 @@ are extrinsic rotations about the fixed x, then y, then z axis, so that
 
 from __future__ import annotations
 
+import math
 import warnings
 from dataclasses import dataclass
 
@@ -54,9 +55,14 @@ def rotation_between(a: NDArray[np.floating], b: NDArray[np.floating]) -> Array:
     b = np.asarray(b, dtype=np.float64)
     a = a / np.linalg.norm(a)
     b = b / np.linalg.norm(b)
-    axis = np.cross(a, b)
-    s = float(np.linalg.norm(axis))
-    c = float(np.clip(np.dot(a, b), -1.0, 1.0))
+    # Scalar arithmetic on the three components: the 6D pose of every 2D
+    # match starts here (about ten per localization), and numpy's and
+    # SciPy's call overheads made this 0.1 ms of the pose's 0.2 ms.
+    ax, ay, az = float(a[0]), float(a[1]), float(a[2])
+    bx, by, bz = float(b[0]), float(b[1]), float(b[2])
+    vx, vy, vz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+    s = math.sqrt(vx * vx + vy * vy + vz * vz)
+    c = min(max(ax * bx + ay * by + az * bz, -1.0), 1.0)
     if s < 1e-12:
         if c > 0:
             return np.eye(3)
@@ -65,7 +71,15 @@ def rotation_between(a: NDArray[np.floating], b: NDArray[np.floating]) -> Array:
             perp = np.cross(a, [0.0, 1.0, 0.0])
         perp /= np.linalg.norm(perp)
         return Rotation.from_rotvec(np.pi * perp).as_matrix()
-    return Rotation.from_rotvec(axis / s * np.arctan2(s, c)).as_matrix()
+    # Rodrigues: R = I + sin(t) K + (1 - cos(t)) K^2, K the cross-product
+    # matrix of the unit axis k = v / s, sin(t) = s, cos(t) = c.
+    kx, ky, kz = vx / s, vy / s, vz / s
+    w = 1.0 - c
+    return np.array([
+        [1.0 - w * (ky * ky + kz * kz), w * kx * ky - s * kz, w * kx * kz + s * ky],
+        [w * kx * ky + s * kz, 1.0 - w * (kx * kx + kz * kz), w * ky * kz - s * kx],
+        [w * kx * kz - s * ky, w * ky * kz + s * kx, 1.0 - w * (kx * kx + ky * ky)],
+    ])
 
 
 def rotation_angle_deg(R_a: NDArray[np.floating], R_b: NDArray[np.floating]) -> float:
