@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 from numpy.typing import NDArray
+from scipy.interpolate import CubicSpline
 
 from viewloc_core.metrics import symmetry_transforms
 
@@ -265,6 +266,181 @@ def freeform() -> Shape:
     return Shape("freeform", (TriMesh(verts, faces, smooth=True),))
 
 
+# --- The novel set's objects: parts the localizer was never tuned on. ----------------------
+TEE_RUN_LENGTH_MM = 120.0  # end face to end face of the main run, along object x
+TEE_BRANCH_LENGTH_MM = 55.0  # from the run's axis to the branch's end face, along +y
+TEE_PIPE_RADIUS_MM = 15.0  # run and branch
+TEE_FLANGE_RADIUS_MM = 21.0
+TEE_FLANGE_THICKNESS_MM = 8.0  # each flange ends flush with its pipe end
+
+
+def tee() -> Shape:
+    """A pipe tee: a run along object x, a branch along +y, a flange at each of the three ends.
+
+    Origin at the centre of the run (on both pipes' axes). The half turn about
+    y swaps the run's ends and keeps the branch: the one symmetry besides the
+    identity (any rotation must keep the branch direction +y, so it turns
+    about y, and must keep the run's axis, so by 0 or 180°). The 64-gon
+    tessellation of the cylinders has a vertex on -z, so the mesh has this
+    symmetry exactly too.
+    """
+    half, r = TEE_RUN_LENGTH_MM / 2, TEE_PIPE_RADIUS_MM
+    rf, inner = TEE_FLANGE_RADIUS_MM, TEE_RUN_LENGTH_MM / 2 - TEE_FLANGE_THICKNESS_MM
+    branch_end = TEE_BRANCH_LENGTH_MM
+    branch_inner = branch_end - TEE_FLANGE_THICKNESS_MM
+    prims: list[Primitive] = [
+        Cylinder((-inner, 0.0, 0.0), (inner, 0.0, 0.0), r),
+        Cylinder((inner, 0.0, 0.0), (half, 0.0, 0.0), rf),
+        Cylinder((-half, 0.0, 0.0), (-inner, 0.0, 0.0), rf),
+        # The branch starts on the run's axis, inside the run, so the two
+        # solids overlap instead of meeting along a curve the primitives
+        # cannot express.
+        Cylinder((0.0, 0.0, 0.0), (0.0, branch_inner, 0.0), r),
+        Cylinder((0.0, branch_inner, 0.0), (0.0, branch_end, 0.0), rf),
+    ]
+    half_turn_y = np.eye(4)
+    half_turn_y[:3, :3] = np.diag([-1.0, 1.0, -1.0])
+    return Shape("tee", tuple(prims), sym_discrete=(half_turn_y,))
+
+
+# A C-profile in the xz plane, built from the corner (0, 0, 0) of its bounding box:
+# the web stands at x in [0, web x], the arms run from the web towards +x.
+CLAMP_WEB_MM = (15.0, 40.0, 70.0)  # thickness (x), width (y), height (z)
+CLAMP_LOWER_ARM_MM = (95.0, 40.0, 12.0)  # length beyond the web (x), width (y), thickness (z)
+CLAMP_UPPER_ARM_MM = (60.0, 28.0, 10.0)  # the same; flush with the web's top and its y = 0 side
+CLAMP_BOSS_MM = (95.0, 26.0, 10.0, 15.0)  # axis (x, y), radius, height above the lower arm
+
+
+def clamp() -> Shape:
+    """A C-shaped clamp body: a web, a long lower arm and a short, narrow upper arm, with a boss.
+
+    The arms differ in length, width and thickness, the upper arm is flush
+    with one side only and the round boss stands off-centre on the lower
+    arm's inner face: no rotation maps the part onto itself. Origin at the
+    bounding-box centre (about 110 × 40 × 70 mm).
+    """
+    wx, wy, wz = CLAMP_WEB_MM
+    lx, ly, lz = CLAMP_LOWER_ARM_MM
+    ux, uy, uz = CLAMP_UPPER_ARM_MM
+    bx, by, br, bh = CLAMP_BOSS_MM
+    centre = np.array([wx + lx, wy, wz]) / 2
+
+    def corner_box(lo: tuple[float, float, float], size: tuple[float, float, float]) -> Box:
+        c = np.asarray(lo) + np.asarray(size) / 2 - centre
+        return Box((float(c[0]), float(c[1]), float(c[2])), size)
+
+    boss_lo = np.array([bx, by, lz]) - centre
+    boss_hi = np.array([bx, by, lz + bh]) - centre
+    prims: list[Primitive] = [
+        corner_box((0.0, 0.0, 0.0), (wx, wy, wz)),
+        corner_box((wx, 0.0, 0.0), (lx, ly, lz)),
+        corner_box((wx, 0.0, wz - uz), (ux, uy, uz)),
+        Cylinder(
+            (float(boss_lo[0]), float(boss_lo[1]), float(boss_lo[2])),
+            (float(boss_hi[0]), float(boss_hi[1]), float(boss_hi[2])),
+            br,
+        ),
+    ]
+    return Shape("clamp", tuple(prims))
+
+
+# The knob's lathe profile (radius, height) in mm from the bottom pole to the top
+# pole: a flat foot with a rounded edge, a waisted neck and a domed mushroom cap.
+KNOB_PROFILE_MM = (
+    (0.0, 0.0), (9.0, 0.0), (16.0, 0.6), (19.5, 3.0), (20.0, 6.5), (17.5, 10.5),
+    (13.5, 15.0), (13.0, 19.0), (16.0, 23.0), (24.0, 26.5), (30.0, 30.0), (31.5, 34.5),
+    (29.0, 40.0), (21.0, 44.0), (11.0, 46.5), (0.0, 47.2),
+)
+KNOB_PROFILE_POINTS = 48  # samples of the smooth profile, poles included
+KNOB_SECTIONS = 64  # around the axis
+# The lever: a box along +x from inside the foot, centred on y = 0.
+KNOB_LEVER_MM = (55.0, 12.0, 10.0)  # length (x), width (y), height (z)
+KNOB_LEVER_START_MM = (8.0, 6.0)  # inner end's x (inside the foot), centre height above the base
+
+
+def _revolve(profile_rz: Array, sections: int) -> tuple[Array, NDArray[np.int64]]:
+    """Closed mesh of a lathe profile turned about z, one vertex at each pole.
+
+    Parameters
+    ----------
+    profile_rz : (P, 2) float64
+        (radius, height) in mm from the bottom pole (radius 0) to the top pole
+        (radius 0), radii positive in between.
+    sections : int
+        Vertices per ring.
+
+    Returns
+    -------
+    vertices : (2 + (P - 2) sections, 3) float64
+        mm; the bottom pole first, then ring after ring, the top pole last.
+    faces : (2 sections (P - 2), 3) int64
+        Counter-clockwise seen from outside.
+    """
+    rings = profile_rz[1:-1]
+    n_rings = len(rings)
+    ang = 2 * np.pi * np.arange(sections) / sections
+    ring_xyz = np.stack(
+        [
+            np.outer(rings[:, 0], np.cos(ang)),
+            np.outer(rings[:, 0], np.sin(ang)),
+            np.repeat(rings[:, 1:2], sections, axis=1),
+        ],
+        axis=2,
+    ).reshape(-1, 3)
+    verts = np.vstack([[0.0, 0.0, profile_rz[0, 1]], ring_xyz, [0.0, 0.0, profile_rz[-1, 1]]])
+    top = len(verts) - 1
+
+    def v(i: int, j: int) -> int:
+        return 1 + i * sections + j % sections
+
+    # Around the axis (counter-clockwise about z) crossed with up the profile points
+    # outwards, so each triangle takes its ring neighbour before its profile neighbour.
+    faces = [(0, v(0, j + 1), v(0, j)) for j in range(sections)]
+    for i in range(n_rings - 1):
+        for j in range(sections):
+            a, b, c, d = v(i, j), v(i, j + 1), v(i + 1, j + 1), v(i + 1, j)
+            faces += [(a, b, c), (a, c, d)]
+    faces += [(v(n_rings - 1, j), v(n_rings - 1, j + 1), top) for j in range(sections)]
+    return verts, np.array(faces, dtype=np.int64)
+
+
+def _smooth_profile(points_rz: Array, n: int) -> Array:
+    """(n, 2) samples of a cubic spline through the profile's points, mm.
+
+    Chord-length parameter, with tangents across the axis at both poles so
+    the turned surface has no point at a pole.
+    """
+    t = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(points_rz, axis=0), axis=1))]
+    spline = CubicSpline(t, points_rz, bc_type=((1, [1.0, 0.0]), (1, [-1.0, 0.0])))
+    out = np.asarray(spline(np.linspace(0.0, t[-1], n)), dtype=np.float64)
+    out[[0, -1], 0] = 0.0
+    return out
+
+
+def knob() -> Shape:
+    """A mushroom control knob turned about z, with a box lever sticking out sideways at its foot.
+
+    The turned body alone would be symmetric under every rotation about z;
+    the lever breaks that and no rotation maps the part onto itself. Origin at
+    the bounding-box centre (the body's axis is 16 mm from it, towards -x).
+    """
+    profile = _smooth_profile(np.asarray(KNOB_PROFILE_MM, dtype=np.float64), KNOB_PROFILE_POINTS)
+    body_v, body_f = _revolve(profile, KNOB_SECTIONS)
+    lx, ly, lz = KNOB_LEVER_MM
+    x0, zc = KNOB_LEVER_START_MM
+    lever_lo = np.array([x0, -ly / 2, zc - lz / 2])
+    lever_hi = lever_lo + np.array([lx, ly, lz])
+    lo = np.minimum(body_v.min(axis=0), lever_lo)
+    hi = np.maximum(body_v.max(axis=0), lever_hi)
+    centre = (lo + hi) / 2
+    lever_c = (lever_lo + lever_hi) / 2 - centre
+    prims: list[Primitive] = [
+        TriMesh(body_v - centre, body_f, smooth=True),
+        Box((float(lever_c[0]), float(lever_c[1]), float(lever_c[2])), (lx, ly, lz)),
+    ]
+    return Shape("knob", tuple(prims))
+
+
 # --- Clutter (paper §5.1: "rectangular clutter structures"). -------------------------------
 def bar(length: float, width: float, height: float) -> Shape:
     """A rectangular bar along x."""
@@ -378,8 +554,22 @@ def to_pov(shape: Shape, texture: str, transform: str) -> str:
     return f"union {{\n{body}\n {texture}\n {transform}\n}}"
 
 
-ASSET_FILES = {"barbell": "barbell.stl", "bracket": "bracket.stl", "freeform": "freeform.ply"}
-SHAPES = {"barbell": barbell, "bracket": bracket, "freeform": freeform}
+ASSET_FILES = {
+    "barbell": "barbell.stl",
+    "bracket": "bracket.stl",
+    "freeform": "freeform.ply",
+    "tee": "tee.stl",
+    "clamp": "clamp.stl",
+    "knob": "knob.ply",
+}
+SHAPES = {
+    "barbell": barbell,
+    "bracket": bracket,
+    "freeform": freeform,
+    "tee": tee,
+    "clamp": clamp,
+    "knob": knob,
+}
 
 
 def asset_path(name: str) -> Path:

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import trimesh
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 from viewloc_bench import shapes
 
@@ -63,3 +64,71 @@ def test_clutter_shapes_are_boxes_and_rods() -> None:
     assert "box {" in shapes.to_pov(shapes.bar(100, 10, 10), "", "")
     assert "cylinder {" in shapes.to_pov(shapes.rod(100, 5), "", "")
     assert "mesh2 {" in shapes.to_pov(shapes.freeform(), "", "")
+
+
+def _rotation(axis: str, deg: float) -> np.ndarray:
+    return np.asarray(Rotation.from_euler(axis, deg, degrees=True).as_matrix())
+
+
+def _largest_miss_mm(v: np.ndarray, T: np.ndarray) -> float:
+    """How far the vertices (N, 3) moved by a 4x4 or 3x3 transform lie from the vertex set, mm."""
+    R, t = (T[:3, :3], T[:3, 3]) if T.shape == (4, 4) else (T, np.zeros(3))
+    d, _ = cKDTree(v).query(v @ R.T + t)
+    return float(d.max())
+
+
+@pytest.mark.parametrize("make", [shapes.tee, shapes.clamp, shapes.knob])
+def test_novel_objects_are_closed_and_sized_like_the_bracket(
+    make: Callable[[], shapes.Shape],
+) -> None:
+    shape = make()
+    for p in shape.primitives:
+        part = shapes.to_trimesh(shapes.Shape("part", (p,)))
+        assert part.is_watertight
+        assert part.volume > 0  # faces point outwards
+    mesh = shapes.to_trimesh(shape)
+    assert 100.0 <= shapes.diameter_mm(mesh) <= 140.0
+    # Origin near the middle: no vertex farther than 0.7 diameter from it.
+    assert np.linalg.norm(mesh.vertices, axis=1).max() < 0.7 * shapes.diameter_mm(mesh)
+
+
+def test_tee_has_exactly_its_half_turn_about_y() -> None:
+    shape = shapes.tee()
+    mesh = shapes.to_trimesh(shape)
+    assert np.allclose(mesh.bounds, [[-60, -21, -21], [60, 55, 21]], atol=1e-6)
+    v = np.asarray(mesh.vertices)
+    assert len(shape.sym_discrete) == 1 and not shape.sym_continuous
+    for S in shape.sym_discrete:
+        assert not np.allclose(S, np.eye(4))
+        assert np.allclose(S[:3, :3] @ S[:3, :3].T, np.eye(3)) and np.linalg.det(S[:3, :3]) > 0
+        assert _largest_miss_mm(v, S) < 0.5
+    assert len(shape.symmetries()) == 2
+    # The half turns about x and z send the branch to -y; quarter turns swap the pipes.
+    for axis, deg in (("x", 180), ("z", 180), ("y", 90), ("x", 90), ("z", 90)):
+        assert _largest_miss_mm(v, _rotation(axis, deg)) > 20.0
+
+
+@pytest.mark.parametrize("make", [shapes.clamp, shapes.knob])
+def test_clamp_and_knob_have_no_symmetry(make: Callable[[], shapes.Shape]) -> None:
+    shape = make()
+    assert shape.symmetries().shape == (1, 4, 4)
+    v = np.asarray(shapes.to_trimesh(shape).vertices)
+    assert _largest_miss_mm(v, np.eye(3)) == 0.0
+    for axis in "xyz":
+        for deg in (90, 180, 270):
+            assert _largest_miss_mm(v, _rotation(axis, deg)) > 10.0
+
+
+def test_knob_body_is_turned_and_only_the_lever_breaks_its_symmetry() -> None:
+    shape = shapes.knob()
+    body, lever = shape.primitives
+    assert isinstance(body, shapes.TriMesh) and body.smooth
+    assert isinstance(lever, shapes.Box)
+    v = body.vertices
+    axis = (v[:, :2].min(axis=0) + v[:, :2].max(axis=0)) / 2  # the body's axis, off the origin
+    about_axis = v - np.r_[axis, 0.0]
+    for deg in (45.0, 90.0, 180.0):
+        # A turn about the body's own axis by a multiple of the tessellation step.
+        assert _largest_miss_mm(about_axis, _rotation("z", deg)) < 1e-6
+    whole = np.asarray(shapes.to_trimesh(shape).vertices) - np.r_[axis, 0.0]
+    assert _largest_miss_mm(whole, _rotation("z", 180.0)) > 30.0
