@@ -12,7 +12,7 @@ from typing import Any
 from viewloc_bench import lmo, runner, sets
 from viewloc_bench.localizers import Backend, CoreBackend, EngineUnavailableError, HttpBackend
 
-ALL_SETS = ("paper", "hard", "lmo")
+ALL_SETS = ("paper", "hard", "novel", "lmo")
 QUICK_IMAGES_PER_N = 2
 QUICK_NEGATIVES = 2
 QUICK_LMO_IMAGES = 20
@@ -23,7 +23,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument(
         "--sets",
         default=",".join(ALL_SETS),
-        help="comma-separated subset of paper,hard,lmo (default: all)",
+        help=f"comma-separated subset of {','.join(ALL_SETS)} (default: all)",
     )
     p.add_argument(
         "--url", default=None, help="measure the HTTP service at this URL instead of the core"
@@ -69,17 +69,18 @@ def load_sets(args: argparse.Namespace, names: list[str]) -> dict[str, sets.Benc
     """Generate (or reuse) and load the requested sets, printing the time each took."""
     root = args.out / "sets"
     out: dict[str, sets.BenchSet] = {}
-    per_n = QUICK_IMAGES_PER_N if args.quick else 10
+    # None: each set at its own full size (10 images per N for paper and hard, 6 for novel).
+    per_n = QUICK_IMAGES_PER_N if args.quick else None
     if args.images_per_n is not None:
         per_n = args.images_per_n
-    neg = min(per_n, QUICK_NEGATIVES) if args.quick or args.images_per_n is not None else None
     for name in names:
         t0 = time.perf_counter()
-        if name in ("paper", "hard"):
+        if name in sets.SPECS:
+            make_spec = sets.SPECS[name]
             spec = (
-                sets.paper_spec(per_n, 10 if neg is None else neg, args.scale)
-                if name == "paper"
-                else sets.hard_spec(per_n, 6 if neg is None else neg, args.scale)
+                make_spec(scale=args.scale)
+                if per_n is None
+                else make_spec(per_n, min(per_n, QUICK_NEGATIVES), args.scale)
             )
             folder = sets.generate(spec, args.seed, root, workers=args.workers)
             bench = sets.load_generated(folder)

@@ -1,4 +1,8 @@
-"""A tiny generated paper set shared by the benchmark tests (96x72, 3 images + 1 negative)."""
+"""Tiny generated sets shared by the benchmark tests.
+
+Paper: 96x72, 3 images + 1 negative. Novel: 160x120, one image per object at N = 2
++ 1 negative per object.
+"""
 
 import dataclasses
 from pathlib import Path
@@ -18,3 +22,15 @@ def tiny_paper_set(tmp_path_factory: pytest.TempPathFactory) -> Path:
         pytest.skip("povray not installed")
     root = tmp_path_factory.mktemp("bench_sets")
     return sets.generate(tiny_paper_spec(), 7, root, workers=3, log=None)
+
+
+def tiny_novel_spec() -> sets.SetSpec:
+    return dataclasses.replace(sets.novel_spec(1, 1, scale=0.25), n_values=(2,))
+
+
+@pytest.fixture(scope="session")
+def tiny_novel_set(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    if povray.povray_executable() is None:
+        pytest.skip("povray not installed")
+    root = tmp_path_factory.mktemp("bench_sets_novel")
+    return sets.generate(tiny_novel_spec(), 7, root, workers=2, log=None)
