@@ -69,7 +69,7 @@ def load_sets(args: argparse.Namespace, names: list[str]) -> dict[str, sets.Benc
     """Generate (or reuse) and load the requested sets, printing the time each took."""
     root = args.out / "sets"
     out: dict[str, sets.BenchSet] = {}
-    # None: each set at its own full size (10 images per N for paper and hard, 6 for novel).
+    # None: each set at its own full size (10 images per N).
     per_n = QUICK_IMAGES_PER_N if args.quick else None
     if args.images_per_n is not None:
         per_n = args.images_per_n

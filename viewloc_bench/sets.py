@@ -116,7 +116,7 @@ def hard_spec(images_per_n: int = 10, negatives: int = 6, scale: float = 1.0) ->
     )
 
 
-def novel_spec(images_per_n: int = 6, negatives: int = 4, scale: float = 1.0) -> SetSpec:
+def novel_spec(images_per_n: int = 10, negatives: int = 4, scale: float = 1.0) -> SetSpec:
     """The novel set: tee, clamp and knob in the hard set's scenes (camera, textures, metal, fog).
 
     A generalisation check: the localizer's settings were tuned on the

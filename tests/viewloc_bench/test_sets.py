@@ -83,7 +83,7 @@ def test_novel_spec_is_the_hard_scenes_with_new_objects() -> None:
     novel, hard = sets.novel_spec(), sets.hard_spec()
     assert novel.objects == ("tee", "clamp", "knob")
     assert not set(novel.objects) & set(hard.objects + sets.paper_spec().objects)
-    assert (novel.images_per_n, novel.negatives, novel.n_values) == (6, 4, (0, 2, 4, 6))
+    assert (novel.images_per_n, novel.negatives, novel.n_values) == (10, 4, (0, 2, 4, 6))
     assert novel.camera == hard.camera and novel.scene == hard.scene
     assert len(set(sets.SET_CODES.values())) == len(sets.SET_CODES)
     assert set(sets.SPECS) <= set(cli.ALL_SETS) <= set(sets.SPECS) | {"lmo"}
