@@ -304,22 +304,28 @@ def _two_views_at_one_location(model):
     return camera, first_view, other_view, sim, loc
 
 
-@pytest.mark.parametrize("near_symmetric", [True, False])
-def test_a_near_symmetric_parts_best_other_start_gets_the_full_fit(bracket_model, monkeypatch,
-                                                                    near_symmetric):
+@pytest.mark.parametrize(("near_symmetric", "quick_fraction", "wins"),
+                         [(True, 0.80, True), (False, 0.80, False), (True, 0.70, False)])
+def test_a_near_symmetric_parts_best_other_start_gets_the_full_fit(
+        bracket_model, monkeypatch, near_symmetric, quick_fraction, wins):
     # The quick fit of a start (few iterations, half the points) can rank
     # below the full fit it competes with, even where its own full fit
     # ranks higher.
-    # Here refinement leaves every pose where it is and confirms 0.70 of
-    # the contour quickly, 0.95 fully; the first fit confirmed 0.90. A part
-    # with near-symmetries gets the other start's full fit, and it wins; a
-    # part without them keeps the first fit (its quick rival ranks lower).
+    # Here refinement leaves every pose where it is and confirms
+    # ``quick_fraction`` of the contour quickly, 0.95 fully; the first fit
+    # confirmed 0.90. A part with near-symmetries gets the other start's
+    # full fit, and it wins, unless the quick fit falls more than
+    # NEAR_SYMMETRIC_MAX_SHORT_FIT_GAP short of the first fit; a part
+    # without them keeps the first fit (its quick rival ranks lower).
+    assert 0.90 - 0.80 < localize_module.NEAR_SYMMETRIC_MAX_SHORT_FIT_GAP < 0.90 - 0.70
     model = bracket_model
     camera, first_view, other_view, sim, loc = _two_views_at_one_location(model)
+    full_fits = []
 
     def refine(edges, camera_, start, contour, options):
         quick = options is localize_module.QUICK_REFINE
-        return RefinementResult(start, True, 3, 0.5, 0.70 if quick else 0.95)
+        full_fits.extend([] if quick else [start])
+        return RefinementResult(start, True, 3, 0.5, quick_fraction if quick else 0.95)
 
     class Shading:
         near = NearSymmetries(np.eye(4)[None] if near_symmetric else np.zeros((0, 4, 4)),
@@ -334,8 +340,9 @@ def test_a_near_symmetric_parts_best_other_start_gets_the_full_fit(bracket_model
     first = RefinementResult(start, True, 10, 0.5, 0.90)
     result, view, _, _ = _other_sides(model, loc, 1.0, camera, None, None, Shading(),
                                       first_view, sim, start, first, _FitOptions())
-    assert (view, result.inlier_fraction) == ((other_view, 0.95) if near_symmetric
+    assert (view, result.inlier_fraction) == ((other_view, 0.95) if wins
                                               else (first_view, 0.90))
+    assert len(full_fits) == (1 if wins else 0)
 
 
 @pytest.mark.parametrize("rounds", [1, 2])
