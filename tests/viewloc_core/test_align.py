@@ -218,7 +218,7 @@ def test_outline_evidence_favours_the_true_similarity(renderer, bracket_mesh, br
     shifted, turned or rescaled; a screen on the first samples is the same
     sum over fewer samples; and a view half outside the image is not
     credited for the samples it cannot see."""
-    from viewloc_core.align import outline_evidence
+    from viewloc_core.align import OUTLINE_SCALE_EXPONENT, outline_evidence
     from viewloc_core.edge_evidence import chance_rates, lay_over_templates
 
     model = bracket_model
@@ -234,12 +234,15 @@ def test_outline_evidence_favours_the_true_similarity(renderer, bracket_mesh, br
     views = np.full(4, view)
     evidence = outline_evidence(index, feats, views, sims, chance)
     assert evidence[0] > 0 and np.all(evidence[0] > evidence[1:])
-    # The screen: the same per-sample evidence on the first 12 samples.
+    # The screen: the same per-sample evidence on the first 12 samples,
+    # times the outline's length, which grows more slowly than the scale.
     few = outline_evidence(index, feats, views, sims, chance, 12)
     llr, _, n_valid, _ = lay_over_templates(
         feats, index.coarse_px[:, :12].copy(), index.coarse_py[:, :12].copy(),
         index.coarse_bins8[:, :12].copy(), index.coarse_valid[:, :12].copy(), views, sims, chance)
-    np.testing.assert_allclose(few, llr / n_valid * index.outline_px[view] * sims[:, 3])
+    np.testing.assert_allclose(
+        few, llr / n_valid * index.outline_px[view] * sims[:, 3] ** OUTLINE_SCALE_EXPONENT)
+    assert 0.0 < OUTLINE_SCALE_EXPONENT < 1.0
     # With the image cut through the object, the view loses the evidence of
     # the half it cannot see, but its samples there cost nothing either.
     cut = int(c)
