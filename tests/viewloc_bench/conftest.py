@@ -16,12 +16,17 @@ def tiny_paper_spec() -> sets.SetSpec:
     return dataclasses.replace(sets.paper_spec(1, 1, scale=0.25), n_values=(0, 4, 9))
 
 
-@pytest.fixture(scope="session")
-def tiny_paper_set(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def _generated(tmp_path_factory: pytest.TempPathFactory, spec: sets.SetSpec) -> Path:
+    """``spec`` generated with seed 7 into a fresh folder (skipped without POV-Ray)."""
     if povray.povray_executable() is None:
         pytest.skip("povray not installed")
-    root = tmp_path_factory.mktemp("bench_sets")
-    return sets.generate(tiny_paper_spec(), 7, root, workers=3, log=None)
+    root = tmp_path_factory.mktemp(f"bench_sets_{spec.name}")
+    return sets.generate(spec, 7, root, workers=3, log=None)
+
+
+@pytest.fixture(scope="session")
+def tiny_paper_set(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return _generated(tmp_path_factory, tiny_paper_spec())
 
 
 def tiny_novel_spec() -> sets.SetSpec:
@@ -30,7 +35,4 @@ def tiny_novel_spec() -> sets.SetSpec:
 
 @pytest.fixture(scope="session")
 def tiny_novel_set(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    if povray.povray_executable() is None:
-        pytest.skip("povray not installed")
-    root = tmp_path_factory.mktemp("bench_sets_novel")
-    return sets.generate(tiny_novel_spec(), 7, root, workers=2, log=None)
+    return _generated(tmp_path_factory, tiny_novel_spec())
