@@ -171,9 +171,9 @@ FIRST_FIT_MIN_FIGURE_GROUND = 0.05
 #: learning seeds 0-4, 400 images), a fit near the part was among them in
 #: 374 images; the first fit and one spare found it in 348, and the next
 #: two or three locations hold most of the rest (replayed on those fits,
-#: two spares 359, three 364; measured with the settling and alignment
-#: gate as now, AR_MSSD mean 0.822 with two, 0.8305 with three, for about
-#: 3-4 ms of median time per image).
+#: two spares 359, three 364; measured, AR_MSSD mean 0.822 with two, 0.827
+#: with three, 0.8305 with three and the settling rule and alignment gate
+#: as now, for about 3-4 ms of median time per image).
 SPARE_LOCATIONS = 3
 
 #: In a colour scene the part's colour proposes locations of its own, fitted

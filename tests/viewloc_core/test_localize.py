@@ -324,7 +324,8 @@ def test_a_near_symmetric_parts_best_other_start_gets_the_full_fit(
 
     def refine(edges, camera_, start, contour, options):
         quick = options is localize_module.QUICK_REFINE
-        full_fits.extend([] if quick else [start])
+        if not quick:
+            full_fits.append(start)
         return RefinementResult(start, True, 3, 0.5, quick_fraction if quick else 0.95)
 
     class Shading:
