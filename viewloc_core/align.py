@@ -35,7 +35,7 @@ from scipy.spatial import cKDTree
 from viewloc_core import similarity as sim2
 from viewloc_core.both_cores import over_halves
 from viewloc_core.clutter_density import log_image_density
-from viewloc_core.edge_evidence import chance_rates, lay_over_templates
+from viewloc_core.edge_evidence import ChanceRates, chance_rates, lay_over_templates
 from viewloc_core.features import (
     KIND_ARC,
     KIND_JUNCTION,
@@ -435,7 +435,7 @@ OUTLINE_SCALE_EXPONENT = 0.75
 
 
 def outline_evidence(index: ModelIndex, feats: ImageFeatures, views: NDArray[np.int64],
-                     sims: F64, chance: F64, n_samples: int | None = None) -> F64:
+                     sims: F64, chance: ChanceRates, n_samples: int | None = None) -> F64:
     """Evidence of H hypotheses (model view, similarity) for their whole outline.
 
     The log-likelihood ratio object vs. clutter of each view's coarse edge
@@ -456,7 +456,7 @@ def outline_evidence(index: ModelIndex, feats: ImageFeatures, views: NDArray[np.
         Model view of each hypothesis.
     sims : (H, 4) float64
         Model view -> image similarities.
-    chance : (ORIENTATION_BINS,) float64
+    chance : ChanceRates
         :func:`viewloc_core.edge_evidence.chance_rates` of the image.
     n_samples : int, optional
         Use only the first this many coarse samples (still spread over the

@@ -83,6 +83,12 @@ class FeatureConfig:
     edge_low_frac, edge_high_frac : float
         Canny hysteresis thresholds as fractions of the 98th percentile of the
         gradient magnitude, so the edge map does not depend on exposure.
+    strong_edge_frac : float
+        An edge pixel is strong when its gradient is at least this fraction
+        of the same 98th percentile (in a nearly empty image, of the floor's
+        equivalent). Faint texture (a sprayed or noisy surface) lies below it,
+        a part's outline against it above; :mod:`viewloc_core.edge_evidence`
+        weighs hits on strong edges apart.
     edge_floor_lsb : float
         Neither threshold goes below this gradient, in quantisation steps
         (LSB of the image's integer type) per pixel. In a nearly empty, smooth
@@ -115,6 +121,7 @@ class FeatureConfig:
     parallel_max_angle_deg: float = 8.0
     edge_low_frac: float = 0.08
     edge_high_frac: float = 0.2
+    strong_edge_frac: float = 1.0
     edge_floor_lsb: float = 1.0
     arc_min_radius_px: float = 10.0
     arc_max_radius_px: float = 400.0
@@ -183,6 +190,9 @@ class ImageFeatures:
     orientation_bits : (H, W) uint16
         Bit ``b`` set where an edge of orientation bin ``b`` lies within the
         spread radius (LINE-2D's spread map); for fast verification.
+    strong_bits : (H, W) uint16
+        The same map of the strong edge pixels alone
+        (``FeatureConfig.strong_edge_frac``): a subset of ``orientation_bits``.
     nearest_edge : (H, W) int32
         Index into ``edge_xy`` of the edge pixel nearest to each pixel (-1
         when the image has no edges).
@@ -197,6 +207,7 @@ class ImageFeatures:
     segments: F32
     grouped: GroupedFeatures
     orientation_bits: NDArray[np.uint16]
+    strong_bits: NDArray[np.uint16]
     nearest_edge: NDArray[np.int32]
     edge_distance: F32
     shape: tuple[int, int]
@@ -335,6 +346,7 @@ def extract_features(
     pixel_xy = _edge_pixels(edges)
     pixel_index = pixel_xy[:, 1].astype(np.int64) * w + pixel_xy[:, 0]
     direction = np.arctan2(gy.ravel()[pixel_index], gx.ravel()[pixel_index])
+    strong = mag.ravel()[pixel_index] >= config.strong_edge_frac * ref
     if config.texture_other_density < 1.0:
         texture = _texture_flags((h, w), pixel_index, direction, config)
         texture_index = pixel_index[texture]
@@ -349,6 +361,7 @@ def extract_features(
         untextured = ~texture
         pixel_xy = np.compress(untextured, pixel_xy, axis=0)
         direction = direction[untextured]
+        strong = strong[untextured]
     # The edge map is final: its distance transform (OpenCV, without the GIL)
     # runs on another core while the arc candidates are traced and the
     # segments grouped.
@@ -358,13 +371,15 @@ def extract_features(
     edge_xy = pixel_xy.astype(np.float32)
 
     bits = orientation_bits_map(edge_xy, edge_theta, (h, w), spread_px)
+    strong_bits = orientation_bits_map(edge_xy[strong], edge_theta[strong], (h, w), spread_px)
     start_circles = _arc_candidates(edges, config)
     segments = _segments(lines.result(), config, segment_mask)
     segment_parts = _group(segments, config)
     nearest, dist = _nearest_edge_result(nearest_job, edges)
     arcs = _arcs_on_edges(start_circles, edge_xy, edge_theta, nearest, dist, config)
     grouped = _concat_parts([*segment_parts, arcs])
-    return ImageFeatures(edge_xy, edge_theta, segments, grouped, bits, nearest, dist, (h, w))
+    return ImageFeatures(edge_xy, edge_theta, segments, grouped, bits, strong_bits, nearest, dist,
+                         (h, w))
 
 
 def _edge_pixels(edges: NDArray[np.uint8]) -> NDArray[np.int32]:
@@ -519,7 +534,8 @@ def _empty_features(shape: tuple[int, int]) -> ImageFeatures:
     )
     return ImageFeatures(
         np.zeros((0, 2), np.float32), np.zeros(0, np.float32), np.zeros((0, 4), np.float32),
-        empty_grouped, np.zeros(shape, np.uint16), np.full(shape, -1, np.int32),
+        empty_grouped, np.zeros(shape, np.uint16), np.zeros(shape, np.uint16),
+        np.full(shape, -1, np.int32),
         np.full(shape, np.inf, np.float32), shape,
     )
 

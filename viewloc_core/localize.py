@@ -50,7 +50,7 @@ from viewloc_core.camera import Camera
 from viewloc_core.contour_model import ContourModel
 from viewloc_core.detection import Detection, Similarity2D
 from viewloc_core.edge_contrast import local_min_gradient
-from viewloc_core.edge_evidence import chance_rates
+from viewloc_core.edge_evidence import ChanceRates, chance_rates
 from viewloc_core.errors import InvalidInputError
 from viewloc_core.features import (
     ImageFeatures,
@@ -674,7 +674,7 @@ class _ColourScene:
 
 def _colour_locations(
     model: ObjectModel, colour: _ColourScene, feats: ImageFeatures, templates: ViewTemplates,
-    chance: NDArray[np.float64], config: AlignConfig, taken: list[_Located],
+    chance: ChanceRates, config: AlignConfig, taken: list[_Located],
 ) -> list[_Located]:
     """The view search at the locations the part's colour proposes, as
     locations of their own (an alignment match made of the best view).

@@ -3,7 +3,8 @@
 The view search (:mod:`viewloc_core.view_search`) scores thousands of
 (training view, similarity) pairs per image location: each edge sample is
 mapped into the image, looked up in the spread orientation map and adds the
-log-likelihood ratio of a hit or a miss of its (turned) orientation bin. In
+log-likelihood ratio of a hit on a strong edge, a hit on a weak one or a miss
+of its (turned) orientation bin. In
 array form that is a dozen passes over (pairs x samples) temporaries; here it
 is one pass with no temporaries. Positions are computed in float32 exactly as
 the array form did (the rounding to a pixel decides hits).
@@ -20,10 +21,10 @@ F64 = NDArray[np.float64]
 
 @njit(cache=True, nogil=True, inline="always")
 def _laid_template(
-    bits: NDArray[np.uint16], wanted: NDArray[np.uint16],
+    bits: NDArray[np.uint16], strong_bits: NDArray[np.uint16], wanted: NDArray[np.uint16],
     px: NDArray[np.float32], py: NDArray[np.float32], bins: NDArray[np.uint8],
     valid: NDArray[np.bool_], t: np.int64, c: np.float32, s: np.float32, tx: np.float32,
-    ty: np.float32, tn: np.uint8, log_hit: F64, log_miss: F64,
+    ty: np.float32, tn: np.uint8, log_hit: F64, log_strong_hit: F64, log_miss: F64,
 ) -> tuple[float, int, int, float]:  # pragma: no cover - compiled
     """Template row ``t`` laid over the image by one similarity: its llr,
     hits, valid samples and the llr had every sample inside found its edge."""
@@ -42,9 +43,12 @@ def _laid_template(
         if u < 0 or u >= w or v < 0 or v >= h:
             continue
         b = (bins[t, p] + tn) & (n_bins - 1)
-        acc_best += log_hit[b]
+        acc_best += max(log_hit[b], log_strong_hit[b])
         if bits[v, u] & wanted[b]:
-            acc += log_hit[b]
+            if strong_bits[v, u] & wanted[b]:
+                acc += log_strong_hit[b]
+            else:
+                acc += log_hit[b]
             n_hit += 1
         else:
             acc += log_miss[b]
@@ -53,12 +57,12 @@ def _laid_template(
 
 @njit(cache=True, nogil=True)
 def lay_over(
-    bits: NDArray[np.uint16], wanted: NDArray[np.uint16],
+    bits: NDArray[np.uint16], strong_bits: NDArray[np.uint16], wanted: NDArray[np.uint16],
     px: NDArray[np.float32], py: NDArray[np.float32], bins: NDArray[np.uint8],
     valid: NDArray[np.bool_], rows: NDArray[np.int64],
     cos_scale: NDArray[np.float32], sin_scale: NDArray[np.float32],
     x: NDArray[np.float32], y: NDArray[np.float32], turn: NDArray[np.uint8],
-    log_hit: F64, log_miss: F64,
+    log_hit: F64, log_strong_hit: F64, log_miss: F64,
 ) -> tuple[F64, NDArray[np.int64], NDArray[np.int64], F64]:  # pragma: no cover - compiled
     """Evidence of H template rows laid over an image by H similarities.
 
@@ -66,6 +70,8 @@ def lay_over(
     ----------
     bits : (h, w) uint16
         Spread orientation map of the image (bit ``b``: an edge of bin ``b``).
+    strong_bits : (h, w) uint16
+        The same of its strong edges alone (a subset of ``bits``).
     wanted : (B,) uint16
         Bits that confirm a sample of each orientation bin.
     px, py : (T, P) float32
@@ -82,8 +88,9 @@ def lay_over(
         Its translation, image pixels.
     turn : (H,) uint8
         Orientation bins its angle turns the samples by.
-    log_hit, log_miss : (B,) float64
-        Log-likelihood ratio of a hit and of a miss per orientation bin.
+    log_hit, log_strong_hit, log_miss : (B,) float64
+        Log-likelihood ratio of a hit on a weak edge, on a strong edge and of a
+        miss per orientation bin.
 
     Returns
     -------
@@ -94,7 +101,8 @@ def lay_over(
     n_valid : (H,) int64
         Valid samples.
     llr_all_found : (H,) float64
-        The llr had every sample inside the image found its edge.
+        The llr had every sample inside the image found its edge, of the
+        better-scoring kind.
     """
     n_pairs = len(rows)
     llr = np.zeros(n_pairs)
@@ -103,19 +111,19 @@ def lay_over(
     best = np.zeros(n_pairs)
     for i in range(n_pairs):
         llr[i], hits[i], n_valid[i], best[i] = _laid_template(
-            bits, wanted, px, py, bins, valid, rows[i], cos_scale[i], sin_scale[i], x[i], y[i],
-            turn[i], log_hit, log_miss)
+            bits, strong_bits, wanted, px, py, bins, valid, rows[i], cos_scale[i], sin_scale[i],
+            x[i], y[i], turn[i], log_hit, log_strong_hit, log_miss)
     return llr, hits, n_valid, best
 
 
 @njit(cache=True, nogil=True)
 def lay_over_grid(
-    bits: NDArray[np.uint16], wanted: NDArray[np.uint16],
+    bits: NDArray[np.uint16], strong_bits: NDArray[np.uint16], wanted: NDArray[np.uint16],
     px: NDArray[np.float32], py: NDArray[np.float32], bins: NDArray[np.uint8],
     valid: NDArray[np.bool_], views: NDArray[np.int64],
     cos_scale: NDArray[np.float32], sin_scale: NDArray[np.float32],
     x: NDArray[np.float32], y: NDArray[np.float32], turn: NDArray[np.uint8],
-    log_hit: F64, log_miss: F64,
+    log_hit: F64, log_strong_hit: F64, log_miss: F64,
 ) -> F64:  # pragma: no cover - compiled
     """The llr of :func:`lay_over` for every template row of ``views`` laid
     over the image by every one of S similarities, without the S x V pair
@@ -123,7 +131,7 @@ def lay_over_grid(
 
     Parameters
     ----------
-    bits, wanted, px, py, bins, valid, log_hit, log_miss
+    bits, strong_bits, wanted, px, py, bins, valid, log_hit, log_strong_hit, log_miss
         As :func:`lay_over` takes them.
     views : (V,) int64
         Template rows.
@@ -141,19 +149,21 @@ def lay_over_grid(
     for k in range(len(x)):
         for j in range(n_views):
             llr[k * n_views + j] = _laid_template(
-                bits, wanted, px, py, bins, valid, views[j], cos_scale[k], sin_scale[k], x[k],
-                y[k], turn[k], log_hit, log_miss)[0]
+                bits, strong_bits, wanted, px, py, bins, valid, views[j], cos_scale[k],
+                sin_scale[k], x[k], y[k], turn[k], log_hit, log_strong_hit, log_miss)[0]
     return llr
 
 
 def warm_up() -> None:
     """Compile (or load from numba's cache) for the types the view search passes."""
     f32 = np.zeros(1, np.float32)
-    lay_over(np.zeros((1, 1), np.uint16), np.ones(16, np.uint16), np.zeros((1, 1), np.float32),
+    bits = np.zeros((1, 1), np.uint16)
+    lay_over(bits, bits, np.ones(16, np.uint16), np.zeros((1, 1), np.float32),
              np.zeros((1, 1), np.float32), np.zeros((1, 1), np.uint8), np.ones((1, 1), np.bool_),
              np.zeros(1, np.int64), f32, f32, f32, f32, np.zeros(1, np.uint8), np.zeros(16),
-             np.zeros(16))
-    lay_over_grid(np.zeros((1, 1), np.uint16), np.ones(16, np.uint16),
+             np.zeros(16), np.zeros(16))
+    lay_over_grid(bits, bits, np.ones(16, np.uint16),
                   np.zeros((1, 1), np.float32), np.zeros((1, 1), np.float32),
                   np.zeros((1, 1), np.uint8), np.ones((1, 1), np.bool_), np.zeros(1, np.int64),
-                  f32, f32, f32, f32, np.zeros(1, np.uint8), np.zeros(16), np.zeros(16))
+                  f32, f32, f32, f32, np.zeros(1, np.uint8), np.zeros(16), np.zeros(16),
+                  np.zeros(16))

@@ -28,7 +28,11 @@ from numpy.typing import NDArray
 
 from viewloc_core import similarity as sim2
 from viewloc_core.align import coverage_many, extend_many, sample_spacing_px, spread_subset
-from viewloc_core.edge_evidence import lay_over_grid_of_templates, lay_over_templates
+from viewloc_core.edge_evidence import (
+    ChanceRates,
+    lay_over_grid_of_templates,
+    lay_over_templates,
+)
 from viewloc_core.features import (
     ImageFeatures,
     orientation_bin,
@@ -180,7 +184,7 @@ class ViewCandidate:
 
 def score_views(
     feats: ImageFeatures, templates: ViewTemplates, views: NDArray[np.int64], sims: F64,
-    chance: F64, subset: NDArray[np.int64] | None = None,
+    chance: ChanceRates, subset: NDArray[np.int64] | None = None,
 ) -> tuple[F64, F64, F64]:
     """Log-likelihood ratio and hit fraction of H (view, similarity) pairs.
 
@@ -193,7 +197,7 @@ def score_views(
         Training views.
     sims : (H, 4) float64
         Training-view frame -> image similarities.
-    chance : (ORIENTATION_BINS,) float64
+    chance : ChanceRates
         From :func:`chance_rates`.
     subset : (H, C) int, optional
         Sample indices per pair (all valid samples when None).
@@ -235,7 +239,7 @@ def _coarse_samples(templates: ViewTemplates, points: int) -> tuple[
 
 
 def _score_coarse(feats: ImageFeatures, templates: ViewTemplates, views: NDArray[np.int64],
-                  sims: F64, chance: F64, points: int = COARSE_POINTS) -> F64:
+                  sims: F64, chance: ChanceRates, points: int = COARSE_POINTS) -> F64:
     """The log-likelihood ratio of :func:`score_views` on each view's coarse
     subset (its first ``points`` samples)."""
     llr = lay_over_templates(feats, *_coarse_samples(templates, points), views, sims,
@@ -243,8 +247,8 @@ def _score_coarse(feats: ImageFeatures, templates: ViewTemplates, views: NDArray
     return llr * (templates.length_px[views] * sims[:, 3])
 
 
-def _score_coarse_grid(feats: ImageFeatures, templates: ViewTemplates, sims: F64, chance: F64,
-                       points: int = COARSE_POINTS) -> F64:
+def _score_coarse_grid(feats: ImageFeatures, templates: ViewTemplates, sims: F64,
+                       chance: ChanceRates, points: int = COARSE_POINTS) -> F64:
     """:func:`_score_coarse` of every view at every one of the (S, 4)
     similarities, (S * V,) similarity-major: the pairs are not built."""
     views = np.arange(len(templates))
@@ -253,7 +257,7 @@ def _score_coarse_grid(feats: ImageFeatures, templates: ViewTemplates, sims: F64
     return llr * (templates.length_px[None, :] * sims[:, 3, None]).ravel()
 
 
-def _screen(feats: ImageFeatures, templates: ViewTemplates, sims: F64, chance: F64) -> F64:
+def _screen(feats: ImageFeatures, templates: ViewTemplates, sims: F64, chance: ChanceRates) -> F64:
     """:func:`_score_coarse_grid` of every view at every similarity, or of
     the pairs a pre-screen on fewer samples ranks best (``-inf`` for the
     rest) when there are more than PRESCREEN_MIN_PAIRS."""
@@ -355,7 +359,7 @@ def _shifted(seeds: F64, offsets_px: F64) -> F64:
 
 
 def search_views(
-    feats: ImageFeatures, templates: ViewTemplates, seeds: F64, chance: F64,
+    feats: ImageFeatures, templates: ViewTemplates, seeds: F64, chance: ChanceRates,
     max_candidates: int = 3, offsets_px: F64 | None = None, kept_seeds: int | None = None,
     screen_angles_deg: tuple[float, ...] = SCREEN_ANGLES_DEG,
 ) -> list[ViewCandidate]:
@@ -369,7 +373,7 @@ def search_views(
     seeds : (K, 4) float64
         Training-view frame -> image similarities to start from (the 2D
         match and its alternatives at one location).
-    chance : (ORIENTATION_BINS,) float64
+    chance : ChanceRates
         From :func:`chance_rates`.
     max_candidates : int
         Most candidates returned, each of a different training view.

@@ -246,3 +246,26 @@ def test_a_small_part_on_a_plain_background_keeps_its_whole_outline(noise_share)
     for name, on_side in sides.items():
         assert np.count_nonzero(on_side) >= 50, name
     assert np.all((np.abs(x - 339.5) < 43) & (np.abs(y - 229.5) < 33))
+
+
+def test_a_part_stands_out_as_strong_edges_from_faint_texture():
+    """Strong edges: the outline of a contrasted square on a faint noise
+    texture, not the texture (which gives edges of its own all over)."""
+    rng = np.random.default_rng(4)
+    noise = cv2.GaussianBlur(rng.normal(0.0, 1.0, (200, 240)), (0, 0), 1.5)
+    img = np.clip(120 + 6 * noise / noise.std(), 0, 255).astype(np.uint8)
+    cv2.rectangle(img, (60, 50), (170, 140), 200, thickness=-1)
+    feats = extract_features(img)
+    # The strong map is a subset of the full one.
+    assert not np.any(feats.strong_bits & ~feats.orientation_bits)
+    outline = np.zeros((200, 240), bool)
+    cv2.rectangle(outline.view(np.uint8), (60, 50), (170, 140), 1, thickness=1)
+    away = cv2.dilate(outline.astype(np.uint8), np.ones((15, 15), np.uint8)) == 0
+    # The texture has edges nearly everywhere, hardly any strong one; the
+    # outline is strong along its length.
+    assert np.mean(feats.orientation_bits[away] > 0) > 0.3
+    assert np.mean(feats.strong_bits[away] > 0) < 0.03
+    assert np.mean(feats.strong_bits[outline] > 0) > 0.9
+    # On a plain background every edge is strong.
+    plain = extract_features(_square_image())
+    np.testing.assert_array_equal(plain.strong_bits, plain.orientation_bits)

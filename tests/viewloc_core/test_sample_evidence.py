@@ -21,19 +21,28 @@ def test_hits_misses_outside_and_padding_each_count_as_they_should():
     bins = np.array([[3, 3, 3, 3]], np.uint8)
     valid = np.array([[True, True, True, False]])
     log_hit = np.arange(ORIENTATION_BINS) + 1.0
+    log_strong_hit = log_hit + 0.25
     log_miss = -np.arange(ORIENTATION_BINS) - 0.5
     one = np.ones(1, np.float32)
-    llr, hits, n_valid, best = lay_over(
-        bits, wanted, px, py, bins, valid, np.zeros(1, np.int64), 2 * one, 0 * one, 4 * one,
-        one, np.zeros(1, np.uint8), log_hit, log_miss)
+    weak = np.zeros_like(bits)
+
+    def laid(strong_bits, turn):
+        return lay_over(bits, strong_bits, wanted, px, py, bins, valid, np.zeros(1, np.int64),
+                        2 * one, 0 * one, 4 * one, one, np.full(1, turn, np.uint8), log_hit,
+                        log_strong_hit, log_miss)
+
+    llr, hits, n_valid, best = laid(weak, 0)
     assert list(hits) == [1] and list(n_valid) == [3]
     assert llr[0] == log_hit[3] + log_miss[3]
-    assert best[0] == 2 * log_hit[3]
+    # Had every sample found its edge, of the better kind (here the strong).
+    assert best[0] == 2 * log_strong_hit[3]
+    # The same edge, strong: the hit counts at the strong odds.
+    llr_s, hits_s, _, _ = laid(bits, 0)
+    assert list(hits_s) == [1]
+    assert llr_s[0] == log_strong_hit[3] + log_miss[3]
     # Turned by one bin, the sample's bin 4 is still confirmed by a bin-3
     # edge (the spread map's tolerance), at bin 4's odds.
-    llr_t, hits_t, _, _ = lay_over(
-        bits, wanted, px, py, bins, valid, np.zeros(1, np.int64), 2 * one, 0 * one, 4 * one,
-        one, np.ones(1, np.uint8), log_hit, log_miss)
+    llr_t, hits_t, _, _ = laid(weak, 1)
     assert list(hits_t) == [int(wanted[4] & bits[5, 10] != 0)]
     assert llr_t[0] == (log_hit[4] if hits_t[0] else log_miss[4]) + log_miss[4]
 
@@ -44,6 +53,7 @@ def test_the_grid_gives_each_pair_what_lay_over_gives_it(seed):
     rng = np.random.default_rng(seed)
     bits = rng.integers(0, 2**16, (40, 50)).astype(np.uint16)
     bits[rng.random(bits.shape) < 0.6] = 0
+    strong_bits = bits & rng.integers(0, 2**16, bits.shape).astype(np.uint16)
     wanted = wanted_bits(np.arange(ORIENTATION_BINS)).astype(np.uint16)
     n_templates, n_points, n_sims = 7, 12, 5
     px = rng.uniform(-15, 15, (n_templates, n_points)).astype(np.float32)
@@ -59,11 +69,13 @@ def test_the_grid_gives_each_pair_what_lay_over_gives_it(seed):
     y = rng.uniform(-5, 45, n_sims).astype(np.float32)
     turn = rng.integers(0, ORIENTATION_BINS + 1, n_sims).astype(np.uint8)
     log_hit = rng.uniform(0, 3, ORIENTATION_BINS)
+    log_strong_hit = rng.uniform(0, 3, ORIENTATION_BINS)
     log_miss = -rng.uniform(0, 3, ORIENTATION_BINS)
-    grid = lay_over_grid(bits, wanted, px, py, bins, valid, views, c, s, x, y, turn,
-                         log_hit, log_miss)
+    grid = lay_over_grid(bits, strong_bits, wanted, px, py, bins, valid, views, c, s, x, y, turn,
+                         log_hit, log_strong_hit, log_miss)
     # The same pairs built one by one, similarity-major.
     k = np.repeat(np.arange(n_sims), len(views))
-    pairs, _, _, _ = lay_over(bits, wanted, px, py, bins, valid, np.tile(views, n_sims),
-                              c[k], s[k], x[k], y[k], turn[k], log_hit, log_miss)
+    pairs, _, _, _ = lay_over(bits, strong_bits, wanted, px, py, bins, valid,
+                              np.tile(views, n_sims), c[k], s[k], x[k], y[k], turn[k], log_hit,
+                              log_strong_hit, log_miss)
     np.testing.assert_array_equal(grid, pairs)

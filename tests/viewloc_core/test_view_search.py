@@ -86,17 +86,18 @@ def test_chance_rates_follow_the_image_clutter():
         cv2.line(busy, (int(p[0]), int(q[0])), (int(p[1]), int(q[1])), (220, 220, 220), 1)
     quiet = chance_rates(extract_features(blank))
     noisy = chance_rates(extract_features(busy))
-    assert quiet.shape == noisy.shape == (ORIENTATION_BINS,)
-    assert np.all(quiet <= 0.01)
-    assert np.all(noisy > quiet)
-    assert np.all((noisy > 0) & (noisy < 1))
+    assert quiet.edge.shape == noisy.edge.shape == noisy.strong_edge.shape == (ORIENTATION_BINS,)
+    assert np.all(quiet.edge <= 0.01)
+    assert np.all(noisy.edge > quiet.edge)
+    assert np.all((noisy.edge > 0) & (noisy.edge < 1))
+    assert np.all((noisy.strong_edge >= 0) & (noisy.strong_edge <= noisy.edge))
 
 
 def test_scores_match_a_sample_by_sample_count(renderer, bracket_mesh, bracket_model):
     """The vectorised scoring (whole views and coarse subsets) against a
     plain loop over samples: hit where the spread map has the sample's
     turned bin or a neighbour, samples outside the image add nothing."""
-    from viewloc_core.edge_evidence import TRUE_HIT_RATE
+    from viewloc_core.edge_evidence import _log_ratios
     from viewloc_core.features import wanted_bits
     from viewloc_core.view_search import _score_coarse
 
@@ -105,6 +106,10 @@ def test_scores_match_a_sample_by_sample_count(renderer, bracket_mesh, bracket_m
     image, sim_true, _ = _scene(renderer, bracket_mesh, model, 5, 20.0, clutter=4)
     feats = extract_features(image)
     chance = chance_rates(feats)
+    log_hit, log_strong_hit, log_miss = _log_ratios(chance)
+    # The clutter of this scene has strong edges and weak ones, so both
+    # kinds of hit are counted below.
+    assert 0 < chance.strong_edge.sum() < chance.edge.sum()
     rng = np.random.default_rng(2)
     views = rng.integers(0, len(templates), 12)
     sims = np.tile(sim_true, (12, 1))
@@ -128,11 +133,12 @@ def test_scores_match_a_sample_by_sample_count(renderer, bracket_mesh, bracket_m
             if not (0 <= u < w and 0 <= v < h):
                 continue
             b = (int(b0) + turn) % ORIENTATION_BINS
-            hit = bool(int(feats.orientation_bits[v, u]) & int(wanted_bits(np.array([b]))[0]))
+            wanted = int(wanted_bits(np.array([b]))[0])
+            hit = bool(int(feats.orientation_bits[v, u]) & wanted)
+            strong = bool(int(feats.strong_bits[v, u]) & wanted)
             hits += hit
-            q = chance[b]
-            total += np.log(TRUE_HIT_RATE / q) if hit else np.log((1 - TRUE_HIT_RATE) / (1 - q))
-            found_all += np.log(TRUE_HIT_RATE / q)
+            total += (log_strong_hit[b] if strong else log_hit[b]) if hit else log_miss[b]
+            found_all += max(log_hit[b], log_strong_hit[b])
         assert llr[i] == pytest.approx(total * templates.length_px[t] * s[3], rel=1e-9, abs=1e-9)
         assert frac[i] == pytest.approx(hits / len(pts))
         assert evid[i] == pytest.approx(total / max(found_all, 1e-9), rel=1e-9, abs=1e-9)

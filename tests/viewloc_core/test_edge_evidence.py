@@ -1,0 +1,81 @@
+"""Edge evidence of templates: the clutter model and the split of hits by contrast."""
+
+from dataclasses import replace
+
+import cv2
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from viewloc_core.edge_evidence import (
+    TRUE_HIT_RATE,
+    ChanceRates,
+    _log_ratios,
+    chance_rates,
+    lay_over_templates,
+)
+from viewloc_core.features import ORIENTATION_BINS, extract_features, orientation_bin
+
+rates = st.floats(0.005, 0.95)
+shares = st.floats(0.01, 0.99)
+
+
+@settings(max_examples=200, deadline=None)
+@given(rates, shares)
+def test_the_ratios_are_of_two_proper_distributions(edge, share):
+    """Weighted by the clutter's own probabilities, the ratios give the
+    object's, which sum to one; both models' shares are in (0, 1)."""
+    chance = ChanceRates(np.full(ORIENTATION_BINS, edge), np.full(ORIENTATION_BINS, edge * share))
+    weak, strong, miss = _log_ratios(chance)
+    clutter = np.array([edge * (1 - share), edge * share, 1 - edge])
+    object_probability = clutter * np.exp(np.array([weak[0], strong[0], miss[0]]))
+    assert np.all((object_probability > 0) & (object_probability < 1))
+    assert abs(object_probability.sum() - 1.0) < 1e-9
+    # A strong hit is worth more than a hit not told apart, a weak one less;
+    # the object's hits are as often hits as before the split.
+    plain = np.log(TRUE_HIT_RATE / edge)
+    assert strong[0] > plain > weak[0]
+    assert abs(object_probability[:2].sum() - TRUE_HIT_RATE) < 1e-9
+
+
+@settings(max_examples=50, deadline=None)
+@given(rates)
+def test_the_split_vanishes_where_all_edges_are_strong_or_none(edge):
+    plain = np.log(TRUE_HIT_RATE / edge)
+    all_strong = _log_ratios(ChanceRates(np.full(2, edge), np.full(2, edge)))
+    none_strong = _log_ratios(ChanceRates(np.full(2, edge), np.zeros(2)))
+    np.testing.assert_allclose(all_strong[1], plain, atol=1e-5)
+    np.testing.assert_allclose(none_strong[0], plain, atol=1e-5)
+    np.testing.assert_allclose(all_strong[2], none_strong[2])
+
+
+def _square_template(x0, y0, x1, y1, step=4.0):
+    """Edge samples (1, P) along a rectangle's sides, image pixels at the identity."""
+    top = np.arange(x0, x1, step)
+    side = np.arange(y0, y1, step)
+    px = np.concatenate([top, top, np.full_like(side, x0), np.full_like(side, x1)])
+    py = np.concatenate([np.full_like(top, y0), np.full_like(top, y1), side, side])
+    theta = np.concatenate([np.zeros(2 * len(top)), np.full(2 * len(side), np.pi / 2)])
+    bins = orientation_bin(theta).astype(np.uint8)
+    return (px[None].astype(np.float32), py[None].astype(np.float32), bins[None],
+            np.ones((1, len(px)), bool))
+
+
+def test_a_contrasted_part_gains_on_faint_texture_and_the_texture_loses():
+    """A bright square on faint noise: laid over the square, the template's
+    evidence rises with the split; laid over the noise alone, it falls."""
+    rng = np.random.default_rng(5)
+    noise = cv2.GaussianBlur(rng.normal(0.0, 1.0, (300, 400)), (0, 0), 1.5)
+    img = np.clip(120 + 6 * noise / noise.std(), 0, 255).astype(np.uint8)
+    cv2.rectangle(img, (60, 50), (170, 140), 200, thickness=-1)
+    feats = extract_features(img)
+    template = _square_template(60, 50, 170, 140)
+    sims = np.array([[0.0, 0.0, 0.0, 1.0], [200.0, 120.0, 0.0, 1.0]])
+    rows = np.zeros(2, np.int64)
+    chance = chance_rates(feats)
+    split = lay_over_templates(feats, *template, rows, sims, chance)[0]
+    # Every edge taken as strong: the evidence before the split.
+    alike = replace(feats, strong_bits=feats.orientation_bits)
+    unsplit = lay_over_templates(alike, *template, rows, sims, chance_rates(alike))[0]
+    assert split[0] > 1.1 * unsplit[0] > 0
+    assert split[1] < unsplit[1] < 0
