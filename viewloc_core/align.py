@@ -35,7 +35,12 @@ from scipy.spatial import cKDTree
 from viewloc_core import similarity as sim2
 from viewloc_core.both_cores import over_halves
 from viewloc_core.clutter_density import log_image_density
-from viewloc_core.edge_evidence import ChanceRates, chance_rates, lay_over_templates
+from viewloc_core.edge_evidence import (
+    ChanceRates,
+    chance_rates,
+    lay_over_templates,
+    outline_samples,
+)
 from viewloc_core.features import (
     KIND_ARC,
     KIND_JUNCTION,
@@ -421,19 +426,6 @@ def extend(
                        config.icp_radii_px, config.orientation_tol_deg, robust=True)[0]
 
 
-#: How the outline evidence of a hypothesis grows with its scale (see
-#: :func:`outline_evidence`). The samples are not independent on texture: a
-#: template laid over a busy background at several times the part's size
-#: gathered more evidence than the part at its own (novel bench set,
-#: learning seed 0: in the images where no location lay near the part,
-#: most located places were 2-6 times too large). With the exponent 1
-#: (length in proportion), 0.75 and 0.5, AR_MSSD means: hard set, learning
-#: seeds 0-4, 0.8305 / 0.8405 / 0.821; novel set, seeds 0-2, 0.669 / 0.6855
-#: / 0.701; paper set 0.994 / 0.993 / -; LM-O 0.1046 / 0.1050 / -. The view
-#: search's evidence at 0.75 as well: paper 0.983 (one barbell missed).
-OUTLINE_SCALE_EXPONENT = 0.75
-
-
 def outline_evidence(index: ModelIndex, feats: ImageFeatures, views: NDArray[np.int64],
                      sims: F64, chance: ChanceRates, n_samples: int | None = None) -> F64:
     """Evidence of H hypotheses (model view, similarity) for their whole outline.
@@ -444,8 +436,8 @@ def outline_evidence(index: ModelIndex, feats: ImageFeatures, views: NDArray[np.
     (the outline's length over the sample spacing), so a view that explains
     the whole object beats one that explains a part of it as well. The
     length grows with the hypothesis's scale only as
-    ``scale ** OUTLINE_SCALE_EXPONENT`` (the view search's evidence grows
-    with the scale itself).
+    ``scale ** OUTLINE_SCALE_EXPONENT``
+    (:func:`viewloc_core.edge_evidence.outline_samples`).
 
     Parameters
     ----------
@@ -475,8 +467,7 @@ def outline_evidence(index: ModelIndex, feats: ImageFeatures, views: NDArray[np.
         np.ascontiguousarray(index.coarse_py[:, :n]),
         np.ascontiguousarray(index.coarse_bins8[:, :n]),
         np.ascontiguousarray(index.coarse_valid[:, :n]), views, sims, chance)
-    return (llr / np.maximum(n_valid, 1) * index.outline_px[views]
-            * sims[:, 3] ** OUTLINE_SCALE_EXPONENT)
+    return llr / np.maximum(n_valid, 1) * outline_samples(index.outline_px[views], sims[:, 3])
 
 
 def coverage_many(feats: ImageFeatures, sims: F64, pts: F64, bins: NDArray[np.int64],

@@ -32,6 +32,7 @@ from viewloc_core.edge_evidence import (
     ChanceRates,
     lay_over_grid_of_templates,
     lay_over_templates,
+    outline_samples,
 )
 from viewloc_core.features import (
     ImageFeatures,
@@ -205,7 +206,9 @@ def score_views(
     Returns
     -------
     llr : (H,) float64
-        Summed over samples, each weighted by the image edge length it stands for.
+        Summed over samples, each weighted by the image edge length it stands
+        for, that length growing less than in proportion to the scale
+        (:func:`viewloc_core.edge_evidence.outline_samples`).
     hit_fraction : (H,) float64
     evidence_fraction : (H,) float64
         ``llr`` as a share of what it would be if every sample in the image
@@ -222,7 +225,8 @@ def score_views(
         rows = np.arange(len(views))
     llr, hits, n_valid, llr_all_found = lay_over_templates(feats, px, py, bins, valid, rows,
                                                            sims, chance)
-    return (llr * (templates.length_px[views] * sims[:, 3]), hits / np.maximum(n_valid, 1),
+    return (llr * outline_samples(templates.length_px[views], sims[:, 3]),
+            hits / np.maximum(n_valid, 1),
             llr / np.maximum(llr_all_found, 1e-9))
 
 
@@ -244,7 +248,7 @@ def _score_coarse(feats: ImageFeatures, templates: ViewTemplates, views: NDArray
     subset (its first ``points`` samples)."""
     llr = lay_over_templates(feats, *_coarse_samples(templates, points), views, sims,
                              chance)[0]
-    return llr * (templates.length_px[views] * sims[:, 3])
+    return llr * outline_samples(templates.length_px[views], sims[:, 3])
 
 
 def _score_coarse_grid(feats: ImageFeatures, templates: ViewTemplates, sims: F64,
@@ -254,7 +258,7 @@ def _score_coarse_grid(feats: ImageFeatures, templates: ViewTemplates, sims: F64
     views = np.arange(len(templates))
     llr = lay_over_grid_of_templates(feats, *_coarse_samples(templates, points), views, sims,
                                      chance)
-    return llr * (templates.length_px[None, :] * sims[:, 3, None]).ravel()
+    return llr * outline_samples(templates.length_px[None, :], sims[:, 3, None]).ravel()
 
 
 def _screen(feats: ImageFeatures, templates: ViewTemplates, sims: F64, chance: ChanceRates) -> F64:

@@ -218,8 +218,12 @@ def test_outline_evidence_favours_the_true_similarity(renderer, bracket_mesh, br
     shifted, turned or rescaled; a screen on the first samples is the same
     sum over fewer samples; and a view half outside the image is not
     credited for the samples it cannot see."""
-    from viewloc_core.align import OUTLINE_SCALE_EXPONENT, outline_evidence
-    from viewloc_core.edge_evidence import chance_rates, lay_over_templates
+    from viewloc_core.align import outline_evidence
+    from viewloc_core.edge_evidence import (
+        OUTLINE_SCALE_EXPONENT,
+        chance_rates,
+        lay_over_templates,
+    )
 
     model = bracket_model
     t = int(np.flatnonzero(np.all(model.training.sim_to_model == [0, 0, 0, 1], axis=1))[0])

@@ -97,7 +97,7 @@ def test_scores_match_a_sample_by_sample_count(renderer, bracket_mesh, bracket_m
     """The vectorised scoring (whole views and coarse subsets) against a
     plain loop over samples: hit where the spread map has the sample's
     turned bin or a neighbour, samples outside the image add nothing."""
-    from viewloc_core.edge_evidence import _log_ratios
+    from viewloc_core.edge_evidence import OUTLINE_SCALE_EXPONENT, _log_ratios
     from viewloc_core.features import wanted_bits
     from viewloc_core.view_search import _score_coarse
 
@@ -139,7 +139,8 @@ def test_scores_match_a_sample_by_sample_count(renderer, bracket_mesh, bracket_m
             hits += hit
             total += (log_strong_hit[b] if strong else log_hit[b]) if hit else log_miss[b]
             found_all += max(log_hit[b], log_strong_hit[b])
-        assert llr[i] == pytest.approx(total * templates.length_px[t] * s[3], rel=1e-9, abs=1e-9)
+        length = templates.length_px[t] * s[3] ** OUTLINE_SCALE_EXPONENT
+        assert llr[i] == pytest.approx(total * length, rel=1e-9, abs=1e-9)
         assert frac[i] == pytest.approx(hits / len(pts))
         assert evid[i] == pytest.approx(total / max(found_all, 1e-9), rel=1e-9, abs=1e-9)
     # The coarse screening scores exactly the coarse subsets.
