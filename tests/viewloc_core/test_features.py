@@ -8,6 +8,7 @@ from viewloc_core.errors import InvalidImageError
 from viewloc_core.features import (
     KIND_JUNCTION,
     KIND_PARALLEL,
+    FeatureConfig,
     extract_features,
     orientation_bin,
 )
@@ -269,3 +270,23 @@ def test_a_part_stands_out_as_strong_edges_from_faint_texture():
     # On a plain background every edge is strong.
     plain = extract_features(_square_image())
     np.testing.assert_array_equal(plain.strong_bits, plain.orientation_bits)
+
+
+def test_a_small_part_on_fine_texture_keeps_its_outline():
+    """The texture test drops edge pixels with many edges of other
+    orientations around them, but not strong ones: a small bright square on
+    fine noise keeps all of its outline."""
+    rng = np.random.default_rng(4)
+    noise = cv2.GaussianBlur(rng.normal(0.0, 1.0, (200, 240)), (0, 0), 0.7)
+    img = np.clip(100 + 25 * noise / noise.std(), 0, 255).astype(np.uint8)
+    cv2.rectangle(img, (100, 80), (140, 120), 250, thickness=-1)
+    feats = extract_features(img)
+    outline = np.zeros((200, 240), np.uint8)
+    cv2.rectangle(outline, (100, 80), (140, 120), 1, thickness=1)
+    ys, xs = np.nonzero(outline)
+    found, _ = feats.nearest_edges(np.stack([xs, ys], axis=1).astype(float), 1.5)
+    assert found.mean() > 0.98
+    # The texture alone is still suppressed, but for its strongest pixels.
+    texture = np.clip(100 + 25 * noise / noise.std(), 0, 255).astype(np.uint8)
+    unsuppressed = extract_features(texture, FeatureConfig(texture_other_density=1.0))
+    assert len(extract_features(texture).edge_xy) < 0.1 * len(unsuppressed.edge_xy)
