@@ -136,19 +136,22 @@ def chance_rates(feats: ImageFeatures) -> ChanceRates:
     return ChanceRates(edge, np.minimum(rates(feats.strong_bits), edge))
 
 
-def _log_ratios(chance: ChanceRates) -> tuple[F64, F64, F64]:
-    """Log-likelihood ratio of a weak hit, a strong hit and a miss per
-    orientation bin."""
+def _log_ratios(chance: ChanceRates) -> F64:
+    """Log-likelihood ratio of a miss, a weak hit and a strong hit per
+    orientation bin, (ORIENTATION_BINS, 3) (the columns
+    :data:`viewloc_core.sample_evidence.MISS`, ``WEAK_HIT``, ``STRONG_HIT``)."""
     # Shares and rates stay off 0 and 1: an empty class is never observed,
     # and its ratio must only stay finite.
     tiny = 1e-6
     share = np.clip(chance.strong_edge / chance.edge, tiny, 1.0 - tiny)
     object_odds = STRONG_EDGE_ODDS_RATIO * share / (1.0 - share)
     object_share = object_odds / (1.0 + object_odds)
-    return (np.log(TRUE_HIT_RATE * (1.0 - object_share)
-                   / np.maximum(chance.edge - chance.strong_edge, tiny)),
-            np.log(TRUE_HIT_RATE * object_share / np.maximum(chance.strong_edge, tiny)),
-            np.log((1.0 - TRUE_HIT_RATE) / (1.0 - chance.edge)))
+    return np.ascontiguousarray(np.stack([
+        np.log((1.0 - TRUE_HIT_RATE) / (1.0 - chance.edge)),
+        np.log(TRUE_HIT_RATE * (1.0 - object_share)
+               / np.maximum(chance.edge - chance.strong_edge, tiny)),
+        np.log(TRUE_HIT_RATE * object_share / np.maximum(chance.strong_edge, tiny)),
+    ], axis=1))
 
 
 def _kernel_similarities(sims: F64) -> tuple[NDArray[np.float32], NDArray[np.float32],
@@ -189,14 +192,14 @@ def lay_over_templates(
         Per hypothesis, as :func:`viewloc_core.sample_evidence.lay_over`
         returns them (samples outside the image add nothing).
     """
-    log_hit, log_strong_hit, log_miss = _log_ratios(chance)
+    log_ratio = _log_ratios(chance)
     cos_scale, sin_scale, x, y, turn = _kernel_similarities(sims)
     rows = np.ascontiguousarray(rows, np.int64)
 
     def lay_over_some(lo: int, hi: int) -> tuple[NDArray[np.generic], ...]:
         return lay_over(feats.orientation_bits, feats.strong_bits, _WANTED, px, py, bins, valid,
                         rows[lo:hi], cos_scale[lo:hi], sin_scale[lo:hi], x[lo:hi], y[lo:hi],
-                        turn[lo:hi], log_hit, log_strong_hit, log_miss)
+                        turn[lo:hi], log_ratio)
 
     llr, hits, n_valid, llr_all_found = over_halves(
         len(rows), lay_over_some, _MIN_SAMPLES_SPLIT // max(px.shape[1], 1))
@@ -226,14 +229,14 @@ def lay_over_grid_of_templates(
     (S * V,) float64
         Pair ``(s, j)`` at ``s * V + j``.
     """
-    log_hit, log_strong_hit, log_miss = _log_ratios(chance)
+    log_ratio = _log_ratios(chance)
     cos_scale, sin_scale, x, y, turn = _kernel_similarities(sims)
     views = np.ascontiguousarray(views, np.int64)
 
     def lay_over_some(lo: int, hi: int) -> tuple[NDArray[np.generic], ...]:
         return (lay_over_grid(feats.orientation_bits, feats.strong_bits, _WANTED, px, py, bins,
                               valid, views, cos_scale[lo:hi], sin_scale[lo:hi], x[lo:hi],
-                              y[lo:hi], turn[lo:hi], log_hit, log_strong_hit, log_miss),)
+                              y[lo:hi], turn[lo:hi], log_ratio),)
 
     (llr,) = over_halves(len(sims), lay_over_some,
                          _MIN_SAMPLES_SPLIT // max(px.shape[1] * len(views), 1))

@@ -8,6 +8,12 @@ of its (turned) orientation bin. In
 array form that is a dozen passes over (pairs x samples) temporaries; here it
 is one pass with no temporaries. Positions are computed in float32 exactly as
 the array form did (the rounding to a pixel decides hits).
+
+The outcome of a sample indexes a table of log-likelihood ratios per bin
+(:data:`MISS`, :data:`WEAK_HIT`, :data:`STRONG_HIT`) rather than choosing
+between them by branches: whether a hit is strong is as good as random to
+the processor, and the nested branch made the grid kernel 4.6 times slower
+(22 against 4.8 ms on 2 million samples; the table lookup takes 7).
 """
 
 from __future__ import annotations
@@ -18,13 +24,17 @@ from numpy.typing import NDArray
 
 F64 = NDArray[np.float64]
 
+#: Columns of the log-likelihood ratio table: a sample that finds no edge of
+#: its orientation, one that finds a weak edge, one that finds a strong edge.
+MISS, WEAK_HIT, STRONG_HIT = 0, 1, 2
+
 
 @njit(cache=True, nogil=True, inline="always")
 def _laid_template(
     bits: NDArray[np.uint16], strong_bits: NDArray[np.uint16], wanted: NDArray[np.uint16],
     px: NDArray[np.float32], py: NDArray[np.float32], bins: NDArray[np.uint8],
     valid: NDArray[np.bool_], t: np.int64, c: np.float32, s: np.float32, tx: np.float32,
-    ty: np.float32, tn: np.uint8, log_hit: F64, log_strong_hit: F64, log_miss: F64,
+    ty: np.float32, tn: np.uint8, log_ratio: F64,
 ) -> tuple[float, int, int, float]:  # pragma: no cover - compiled
     """Template row ``t`` laid over the image by one similarity: its llr,
     hits, valid samples and the llr had every sample inside found its edge."""
@@ -43,15 +53,13 @@ def _laid_template(
         if u < 0 or u >= w or v < 0 or v >= h:
             continue
         b = (bins[t, p] + tn) & (n_bins - 1)
-        acc_best += max(log_hit[b], log_strong_hit[b])
-        if bits[v, u] & wanted[b]:
-            if strong_bits[v, u] & wanted[b]:
-                acc += log_strong_hit[b]
-            else:
-                acc += log_hit[b]
-            n_hit += 1
-        else:
-            acc += log_miss[b]
+        acc_best += max(log_ratio[b, WEAK_HIT], log_ratio[b, STRONG_HIT])
+        hit = (bits[v, u] & wanted[b]) != 0
+        # The strong map is a subset of the full one: 0, 1 or 2 is MISS,
+        # WEAK_HIT or STRONG_HIT.
+        outcome = np.int64(hit) + np.int64((strong_bits[v, u] & wanted[b]) != 0)
+        acc += log_ratio[b, outcome]
+        n_hit += hit
     return acc, n_hit, count, acc_best
 
 
@@ -62,7 +70,7 @@ def lay_over(
     valid: NDArray[np.bool_], rows: NDArray[np.int64],
     cos_scale: NDArray[np.float32], sin_scale: NDArray[np.float32],
     x: NDArray[np.float32], y: NDArray[np.float32], turn: NDArray[np.uint8],
-    log_hit: F64, log_strong_hit: F64, log_miss: F64,
+    log_ratio: F64,
 ) -> tuple[F64, NDArray[np.int64], NDArray[np.int64], F64]:  # pragma: no cover - compiled
     """Evidence of H template rows laid over an image by H similarities.
 
@@ -88,9 +96,10 @@ def lay_over(
         Its translation, image pixels.
     turn : (H,) uint8
         Orientation bins its angle turns the samples by.
-    log_hit, log_strong_hit, log_miss : (B,) float64
-        Log-likelihood ratio of a hit on a weak edge, on a strong edge and of a
-        miss per orientation bin.
+    log_ratio : (B, 3) float64
+        Log-likelihood ratio per orientation bin of a miss, a hit on a weak
+        edge and a hit on a strong one (columns :data:`MISS`,
+        :data:`WEAK_HIT`, :data:`STRONG_HIT`).
 
     Returns
     -------
@@ -112,7 +121,7 @@ def lay_over(
     for i in range(n_pairs):
         llr[i], hits[i], n_valid[i], best[i] = _laid_template(
             bits, strong_bits, wanted, px, py, bins, valid, rows[i], cos_scale[i], sin_scale[i],
-            x[i], y[i], turn[i], log_hit, log_strong_hit, log_miss)
+            x[i], y[i], turn[i], log_ratio)
     return llr, hits, n_valid, best
 
 
@@ -123,7 +132,7 @@ def lay_over_grid(
     valid: NDArray[np.bool_], views: NDArray[np.int64],
     cos_scale: NDArray[np.float32], sin_scale: NDArray[np.float32],
     x: NDArray[np.float32], y: NDArray[np.float32], turn: NDArray[np.uint8],
-    log_hit: F64, log_strong_hit: F64, log_miss: F64,
+    log_ratio: F64,
 ) -> F64:  # pragma: no cover - compiled
     """The llr of :func:`lay_over` for every template row of ``views`` laid
     over the image by every one of S similarities, without the S x V pair
@@ -131,7 +140,7 @@ def lay_over_grid(
 
     Parameters
     ----------
-    bits, strong_bits, wanted, px, py, bins, valid, log_hit, log_strong_hit, log_miss
+    bits, strong_bits, wanted, px, py, bins, valid, log_ratio
         As :func:`lay_over` takes them.
     views : (V,) int64
         Template rows.
@@ -150,7 +159,7 @@ def lay_over_grid(
         for j in range(n_views):
             llr[k * n_views + j] = _laid_template(
                 bits, strong_bits, wanted, px, py, bins, valid, views[j], cos_scale[k],
-                sin_scale[k], x[k], y[k], turn[k], log_hit, log_strong_hit, log_miss)[0]
+                sin_scale[k], x[k], y[k], turn[k], log_ratio)[0]
     return llr
 
 
@@ -160,10 +169,9 @@ def warm_up() -> None:
     bits = np.zeros((1, 1), np.uint16)
     lay_over(bits, bits, np.ones(16, np.uint16), np.zeros((1, 1), np.float32),
              np.zeros((1, 1), np.float32), np.zeros((1, 1), np.uint8), np.ones((1, 1), np.bool_),
-             np.zeros(1, np.int64), f32, f32, f32, f32, np.zeros(1, np.uint8), np.zeros(16),
-             np.zeros(16), np.zeros(16))
+             np.zeros(1, np.int64), f32, f32, f32, f32, np.zeros(1, np.uint8),
+             np.zeros((16, 3)))
     lay_over_grid(bits, bits, np.ones(16, np.uint16),
                   np.zeros((1, 1), np.float32), np.zeros((1, 1), np.float32),
                   np.zeros((1, 1), np.uint8), np.ones((1, 1), np.bool_), np.zeros(1, np.int64),
-                  f32, f32, f32, f32, np.zeros(1, np.uint8), np.zeros(16), np.zeros(16),
-                  np.zeros(16))
+                  f32, f32, f32, f32, np.zeros(1, np.uint8), np.zeros((16, 3)))

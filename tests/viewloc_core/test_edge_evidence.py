@@ -15,6 +15,7 @@ from viewloc_core.edge_evidence import (
     lay_over_templates,
 )
 from viewloc_core.features import ORIENTATION_BINS, extract_features, orientation_bin
+from viewloc_core.sample_evidence import MISS, STRONG_HIT, WEAK_HIT
 
 rates = st.floats(0.005, 0.95)
 shares = st.floats(0.01, 0.99)
@@ -26,7 +27,7 @@ def test_the_ratios_are_of_two_proper_distributions(edge, share):
     """Weighted by the clutter's own probabilities, the ratios give the
     object's, which sum to one; both models' shares are in (0, 1)."""
     chance = ChanceRates(np.full(ORIENTATION_BINS, edge), np.full(ORIENTATION_BINS, edge * share))
-    weak, strong, miss = _log_ratios(chance)
+    miss, weak, strong = _log_ratios(chance).T
     clutter = np.array([edge * (1 - share), edge * share, 1 - edge])
     object_probability = clutter * np.exp(np.array([weak[0], strong[0], miss[0]]))
     assert np.all((object_probability > 0) & (object_probability < 1))
@@ -44,9 +45,9 @@ def test_the_split_vanishes_where_all_edges_are_strong_or_none(edge):
     plain = np.log(TRUE_HIT_RATE / edge)
     all_strong = _log_ratios(ChanceRates(np.full(2, edge), np.full(2, edge)))
     none_strong = _log_ratios(ChanceRates(np.full(2, edge), np.zeros(2)))
-    np.testing.assert_allclose(all_strong[1], plain, atol=1e-5)
-    np.testing.assert_allclose(none_strong[0], plain, atol=1e-5)
-    np.testing.assert_allclose(all_strong[2], none_strong[2])
+    np.testing.assert_allclose(all_strong[:, STRONG_HIT], plain, atol=1e-5)
+    np.testing.assert_allclose(none_strong[:, WEAK_HIT], plain, atol=1e-5)
+    np.testing.assert_allclose(all_strong[:, MISS], none_strong[:, MISS])
 
 
 def _square_template(x0, y0, x1, y1, step=4.0):

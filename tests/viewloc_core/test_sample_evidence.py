@@ -23,13 +23,13 @@ def test_hits_misses_outside_and_padding_each_count_as_they_should():
     log_hit = np.arange(ORIENTATION_BINS) + 1.0
     log_strong_hit = log_hit + 0.25
     log_miss = -np.arange(ORIENTATION_BINS) - 0.5
+    log_ratio = np.stack([log_miss, log_hit, log_strong_hit], axis=1)
     one = np.ones(1, np.float32)
     weak = np.zeros_like(bits)
 
     def laid(strong_bits, turn):
         return lay_over(bits, strong_bits, wanted, px, py, bins, valid, np.zeros(1, np.int64),
-                        2 * one, 0 * one, 4 * one, one, np.full(1, turn, np.uint8), log_hit,
-                        log_strong_hit, log_miss)
+                        2 * one, 0 * one, 4 * one, one, np.full(1, turn, np.uint8), log_ratio)
 
     llr, hits, n_valid, best = laid(weak, 0)
     assert list(hits) == [1] and list(n_valid) == [3]
@@ -68,14 +68,14 @@ def test_the_grid_gives_each_pair_what_lay_over_gives_it(seed):
     x = rng.uniform(-5, 55, n_sims).astype(np.float32)
     y = rng.uniform(-5, 45, n_sims).astype(np.float32)
     turn = rng.integers(0, ORIENTATION_BINS + 1, n_sims).astype(np.uint8)
-    log_hit = rng.uniform(0, 3, ORIENTATION_BINS)
-    log_strong_hit = rng.uniform(0, 3, ORIENTATION_BINS)
-    log_miss = -rng.uniform(0, 3, ORIENTATION_BINS)
+    log_ratio = np.stack([-rng.uniform(0, 3, ORIENTATION_BINS),
+                          rng.uniform(0, 3, ORIENTATION_BINS),
+                          rng.uniform(0, 3, ORIENTATION_BINS)], axis=1)
     grid = lay_over_grid(bits, strong_bits, wanted, px, py, bins, valid, views, c, s, x, y, turn,
-                         log_hit, log_strong_hit, log_miss)
+                         log_ratio)
     # The same pairs built one by one, similarity-major.
     k = np.repeat(np.arange(n_sims), len(views))
     pairs, _, _, _ = lay_over(bits, strong_bits, wanted, px, py, bins, valid,
-                              np.tile(views, n_sims), c[k], s[k], x[k], y[k], turn[k], log_hit,
-                              log_strong_hit, log_miss)
+                              np.tile(views, n_sims), c[k], s[k], x[k], y[k], turn[k],
+                              log_ratio)
     np.testing.assert_array_equal(grid, pairs)

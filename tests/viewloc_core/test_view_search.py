@@ -106,7 +106,7 @@ def test_scores_match_a_sample_by_sample_count(renderer, bracket_mesh, bracket_m
     image, sim_true, _ = _scene(renderer, bracket_mesh, model, 5, 20.0, clutter=4)
     feats = extract_features(image)
     chance = chance_rates(feats)
-    log_hit, log_strong_hit, log_miss = _log_ratios(chance)
+    log_miss, log_hit, log_strong_hit = _log_ratios(chance).T
     # The clutter of this scene has strong edges and weak ones, so both
     # kinds of hit are counted below.
     assert 0 < chance.strong_edge.sum() < chance.edge.sum()
