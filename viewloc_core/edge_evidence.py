@@ -20,7 +20,9 @@ the rate of strong edges); the true object's hits are strong at odds
 texture more often than the texture does. A strong hit adds
 ``log(q q_o / s_o)``, a weak one ``log(q (1 - q_o) / (b_o - s_o))``, with
 ``q_o`` the object's share. Where every edge is strong (a clean background) or
-hardly any is (a checkerboard's equal edges) the split changes nothing.
+none is, the split changes nothing; where the part's edges are no stronger
+than the clutter's (a checkerboard, a pale part among dark boxes) it costs
+the part a little.
 """
 
 from __future__ import annotations
