@@ -39,6 +39,7 @@ from viewloc_core.edge_evidence import (
     ChanceRates,
     chance_rates,
     lay_over_templates,
+    object_strong_share,
     outline_samples,
 )
 from viewloc_core.features import (
@@ -327,6 +328,55 @@ def _log_rarity(feats: ImageFeatures) -> F64:
     return rarity
 
 
+def _on_strong_edges(feats: ImageFeatures) -> NDArray[np.bool_]:
+    """Per image feature: whether its edges are strong
+    (:attr:`viewloc_core.features.ImageFeatures.strong_bits`), looked up at
+    points on them: a junction's vertex, the middles of a parallel pair's two
+    lines (both strong), the middle of an arc; (F,) bool."""
+    g = feats.grouped
+    xy = g.xy.astype(np.float64)
+    theta = g.theta.astype(np.float64)
+    reach = g.scale.astype(np.float64)[:, None]
+    # A parallel pair's position is midway between its lines (its scale is
+    # their separation, its angle theirs); an arc's is its circle's centre
+    # (its scale the radius, its angle towards the arc's middle).
+    across = np.stack([-np.sin(theta), np.cos(theta)], axis=1)
+    outward = np.stack([np.cos(theta), np.sin(theta)], axis=1)
+    parallel = (g.kind == KIND_PARALLEL)[:, None]
+    first = np.where(parallel, xy + 0.5 * reach * across,
+                     np.where((g.kind == KIND_ARC)[:, None], xy + reach * outward, xy))
+    second = np.where(parallel, xy - 0.5 * reach * across, first)
+    h, w = feats.shape
+
+    def strong_at(points: F64) -> NDArray[np.bool_]:
+        u = np.clip(np.rint(points[:, 0]).astype(np.int64), 0, w - 1)
+        v = np.clip(np.rint(points[:, 1]).astype(np.int64), 0, h - 1)
+        return np.asarray(feats.strong_bits[v, u] != 0)
+
+    return strong_at(first) & strong_at(second)
+
+
+def _log_contrast(feats: ImageFeatures) -> F64:
+    """Per image feature: how much likelier its edges' contrast is on the
+    part than in this image's clutter, (F,) float64.
+
+    The pairing side of :mod:`viewloc_core.edge_evidence`'s strong hits: the
+    image's features lie on strong edges at its own share, the part's at the
+    odds :data:`viewloc_core.edge_evidence.STRONG_EDGE_ODDS_RATIO` times as
+    high. About 0 wherever nearly every feature is strong (a clean
+    background, a rendered training view) or none is.
+    """
+    strong = _on_strong_edges(feats)
+    if len(strong) == 0:
+        return np.zeros(0, np.float64)
+    # The share stays off 0 and 1: its ratios must only stay finite.
+    share = float(np.clip(strong.mean(), 1e-3, 1.0 - 1e-3))
+    object_share = float(object_strong_share(share))
+    gain = math.log(object_share / share)
+    loss = math.log((1.0 - object_share) / (1.0 - share))
+    return np.where(strong, gain, loss).astype(np.float64)
+
+
 def _pairings(index: ModelIndex, feats: ImageFeatures, config: AlignConfig) -> tuple[
     NDArray[np.int64], NDArray[np.int64]
 ]:
@@ -340,10 +390,14 @@ def _pairings(index: ModelIndex, feats: ImageFeatures, config: AlignConfig) -> t
     hard bench set, 38 -> 34 of 80 missed. The strength of a pairing is the
     log likelihood of its attribute difference plus the model feature's log
     presence, less the image feature's log clutter density and plus its
-    rarity in this image (:func:`_log_rarity`).
+    rarity in this image (:func:`_log_rarity`) and its contrast
+    (:func:`_log_contrast`: a small part's few features among a textured
+    background's thousand otherwise lose the budget to the texture's; novel
+    bench set, AR_MSSD mean over learning seeds 0-2 0.741 -> 0.776; hard set,
+    seeds 0-4, 0.877 -> 0.873).
     """
     g = feats.grouped
-    rarity = _log_rarity(feats)
+    rarity = _log_rarity(feats) + _log_contrast(feats)
     sets = []
     for k, (model_z, model_rows) in index.attr_z.items():
         img_rows = np.flatnonzero(g.kind == k)

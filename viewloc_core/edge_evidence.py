@@ -138,6 +138,23 @@ def chance_rates(feats: ImageFeatures) -> ChanceRates:
     return ChanceRates(edge, np.minimum(rates(feats.strong_bits), edge))
 
 
+def object_strong_share(chance_share: F64 | float) -> F64:
+    """Share of the true object's edges that are strong, given the share of
+    the clutter's (the odds :data:`STRONG_EDGE_ODDS_RATIO` times as high).
+
+    Parameters
+    ----------
+    chance_share : float or array
+        Share of the image's edges (or features) that are strong, in (0, 1).
+
+    Returns
+    -------
+    float64 array of the same shape, in (0, 1)
+    """
+    odds = STRONG_EDGE_ODDS_RATIO * np.asarray(chance_share, np.float64) / (1.0 - chance_share)
+    return np.asarray(odds / (1.0 + odds), np.float64)
+
+
 def _log_ratios(chance: ChanceRates) -> F64:
     """Log-likelihood ratio of a miss, a weak hit and a strong hit per
     orientation bin, (ORIENTATION_BINS, 3) (the columns
@@ -145,9 +162,8 @@ def _log_ratios(chance: ChanceRates) -> F64:
     # Shares and rates stay off 0 and 1: an empty class is never observed,
     # and its ratio must only stay finite.
     tiny = 1e-6
-    share = np.clip(chance.strong_edge / chance.edge, tiny, 1.0 - tiny)
-    object_odds = STRONG_EDGE_ODDS_RATIO * share / (1.0 - share)
-    object_share = object_odds / (1.0 + object_odds)
+    object_share = object_strong_share(
+        np.clip(chance.strong_edge / chance.edge, tiny, 1.0 - tiny))
     return np.ascontiguousarray(np.stack([
         np.log((1.0 - TRUE_HIT_RATE) / (1.0 - chance.edge)),
         np.log(TRUE_HIT_RATE * (1.0 - object_share)

@@ -255,3 +255,29 @@ def test_outline_evidence_favours_the_true_similarity(renderer, bracket_mesh, br
     assert 0 < outline_evidence(index, half, views[:1], at_edge, chance)[0] < evidence[0]
 
 
+
+
+def test_features_of_a_contrasted_part_gain_their_pairing_strength_on_faint_texture():
+    """The contrast prior of the pairings: on faint texture the corners of a
+    contrasted square gain, the texture's features lose; on a plain
+    background every feature is strong and the prior is about 0."""
+    from viewloc_core.align import _log_contrast
+    from viewloc_core.features import KIND_JUNCTION
+
+    rng = np.random.default_rng(6)
+    noise = cv2.GaussianBlur(rng.normal(0.0, 1.0, (300, 400)), (0, 0), 1.5)
+    img = np.clip(120 + 6 * noise / noise.std(), 0, 255).astype(np.uint8)
+    cv2.rectangle(img, (150, 100), (260, 190), 210, thickness=-1)
+    feats = extract_features(img)
+    contrast = _log_contrast(feats)
+    g = feats.grouped
+    corners = np.array([[150, 100], [260, 100], [260, 190], [150, 190]], float)
+    at_corner = (g.kind == KIND_JUNCTION) & (
+        np.min(np.linalg.norm(g.xy[:, None, :] - corners[None], axis=2), axis=1) < 3.0)
+    far = np.min(np.linalg.norm(g.xy[:, None, :] - corners[None], axis=2), axis=1) > 60.0
+    assert at_corner.sum() >= 4 and far.sum() >= 10
+    assert np.all(contrast[at_corner] > 0.1)
+    assert np.median(contrast[far]) < 0
+    plain = np.full((300, 400), 120, np.uint8)
+    cv2.rectangle(plain, (150, 100), (260, 190), 210, thickness=-1)
+    np.testing.assert_allclose(_log_contrast(extract_features(plain)), 0.0, atol=1e-2)
