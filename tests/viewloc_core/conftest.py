@@ -103,3 +103,15 @@ def render_scene(
         Light("ambient", intensity=0.2),
     ]
     return renderer.render_scene(items, camera, lights=lights, background_rgb=(40, 40, 40)).color
+
+
+def faint_noise(shape: tuple[int, int], seed: int, blur_px: float, mean: float,
+                contrast: float) -> np.ndarray:
+    """A grey noise texture (uint8, ``shape``): Gaussian noise blurred by
+    ``blur_px`` and scaled to standard deviation ``contrast`` grey levels
+    about ``mean``; the faint backgrounds of the strong-edge tests."""
+    import cv2
+
+    noise = cv2.GaussianBlur(np.random.default_rng(seed).normal(0.0, 1.0, shape), (0, 0),
+                             blur_px)
+    return np.clip(mean + contrast * noise / noise.std(), 0, 255).astype(np.uint8)

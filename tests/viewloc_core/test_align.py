@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from tests.viewloc_core.conftest import render_scene
+from tests.viewloc_core.conftest import faint_noise, render_scene
 from viewloc_core import similarity as sim2
 from viewloc_core.align import align, refine_at_model_scale
 from viewloc_core.camera import Camera
@@ -264,9 +264,7 @@ def test_features_of_a_contrasted_part_gain_their_pairing_strength_on_faint_text
     from viewloc_core.align import _log_contrast
     from viewloc_core.features import KIND_JUNCTION
 
-    rng = np.random.default_rng(6)
-    noise = cv2.GaussianBlur(rng.normal(0.0, 1.0, (300, 400)), (0, 0), 1.5)
-    img = np.clip(120 + 6 * noise / noise.std(), 0, 255).astype(np.uint8)
+    img = faint_noise((300, 400), 6, 1.5, 120, 6)
     cv2.rectangle(img, (150, 100), (260, 190), 210, thickness=-1)
     feats = extract_features(img)
     contrast = _log_contrast(feats)

@@ -7,6 +7,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from tests.viewloc_core.conftest import faint_noise
 from viewloc_core.edge_evidence import (
     TRUE_HIT_RATE,
     ChanceRates,
@@ -66,9 +67,7 @@ def test_a_contrasted_part_gains_on_faint_texture():
     """A bright square on faint noise: laid over the square, the template's
     evidence rises with the split, and its lead over the same template laid
     over the noise alone grows."""
-    rng = np.random.default_rng(5)
-    noise = cv2.GaussianBlur(rng.normal(0.0, 1.0, (300, 400)), (0, 0), 1.5)
-    img = np.clip(120 + 6 * noise / noise.std(), 0, 255).astype(np.uint8)
+    img = faint_noise((300, 400), 5, 1.5, 120, 6)
     cv2.rectangle(img, (60, 50), (170, 140), 200, thickness=-1)
     feats = extract_features(img)
     template = _square_template(60, 50, 170, 140)

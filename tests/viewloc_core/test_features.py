@@ -4,6 +4,7 @@ import cv2
 import numpy as np
 import pytest
 
+from tests.viewloc_core.conftest import faint_noise
 from viewloc_core.errors import InvalidImageError
 from viewloc_core.features import (
     KIND_JUNCTION,
@@ -252,9 +253,7 @@ def test_a_small_part_on_a_plain_background_keeps_its_whole_outline(noise_share)
 def test_a_part_stands_out_as_strong_edges_from_faint_texture():
     """Strong edges: the outline of a contrasted square on a faint noise
     texture, not the texture (which gives edges of its own all over)."""
-    rng = np.random.default_rng(4)
-    noise = cv2.GaussianBlur(rng.normal(0.0, 1.0, (200, 240)), (0, 0), 1.5)
-    img = np.clip(120 + 6 * noise / noise.std(), 0, 255).astype(np.uint8)
+    img = faint_noise((200, 240), 4, 1.5, 120, 6)
     cv2.rectangle(img, (60, 50), (170, 140), 200, thickness=-1)
     feats = extract_features(img)
     # The strong map is a subset of the full one.
@@ -276,9 +275,8 @@ def test_a_small_part_on_fine_texture_keeps_its_outline():
     """The texture test drops edge pixels with many edges of other
     orientations around them, but not strong ones: a small bright square on
     fine noise keeps all of its outline."""
-    rng = np.random.default_rng(4)
-    noise = cv2.GaussianBlur(rng.normal(0.0, 1.0, (200, 240)), (0, 0), 0.7)
-    img = np.clip(100 + 25 * noise / noise.std(), 0, 255).astype(np.uint8)
+    texture = faint_noise((200, 240), 4, 0.7, 100, 25)
+    img = texture.copy()
     cv2.rectangle(img, (100, 80), (140, 120), 250, thickness=-1)
     feats = extract_features(img)
     outline = np.zeros((200, 240), np.uint8)
@@ -287,6 +285,5 @@ def test_a_small_part_on_fine_texture_keeps_its_outline():
     found, _ = feats.nearest_edges(np.stack([xs, ys], axis=1).astype(float), 1.5)
     assert found.mean() > 0.98
     # The texture alone is still suppressed, but for its strongest pixels.
-    texture = np.clip(100 + 25 * noise / noise.std(), 0, 255).astype(np.uint8)
     unsuppressed = extract_features(texture, FeatureConfig(texture_other_density=1.0))
     assert len(extract_features(texture).edge_xy) < 0.1 * len(unsuppressed.edge_xy)
