@@ -49,6 +49,7 @@ from viewloc_core.both_cores import each_on_both
 from viewloc_core.camera import Camera
 from viewloc_core.contour_model import ContourModel
 from viewloc_core.detection import Detection, Similarity2D
+from viewloc_core.distinct_parts import distinct_parts
 from viewloc_core.edge_contrast import local_min_gradient
 from viewloc_core.edge_evidence import ChanceRates, chance_rates
 from viewloc_core.errors import InvalidInputError
@@ -1023,8 +1024,6 @@ def _ranked(fits: list[_Fitted], by_colour: bool = False) -> list[Detection]:
     (:attr:`_Fitted.figure_ground_bonus`): a cast shadow or a texture
     confirms an outline as well as the part, but encloses the colours
     around it.
-    Scores do not rise down the list: a detection ranked below another is
-    reported with no more quality than it.
     """
     if by_colour:
         fits = [f for f in fits
@@ -1038,13 +1037,32 @@ def _ranked(fits: list[_Fitted], by_colour: bool = False) -> list[Detection]:
                          key=lambda f: -((f.chance_corrected or 0.0) + f.figure_ground_bonus
                                          + EVIDENCE_WEIGHT * _evidence_share(f, best)))
     failed = [f for f in fits if not f.detection.refined]
-    ranked: list[Detection] = []
-    for fit in refined + failed:
-        det = fit.detection
-        if ranked and det.score > ranked[-1].score:
-            det = replace(det, score=ranked[-1].score)
-        ranked.append(det)
-    return ranked
+    return [f.detection for f in refined + failed]
+
+
+def _non_increasing(detections: list[Detection]) -> list[Detection]:
+    """The detections with each score lowered to at most the one before it."""
+    out: list[Detection] = []
+    for det in detections:
+        if out and det.score > out[-1].score:
+            det = replace(det, score=out[-1].score)
+        out.append(det)
+    return out
+
+
+def _distinct(detections: list[Detection], model: ObjectModel, camera: Camera,
+              surface: tuple[SurfaceSamples, NearSymmetries] | None,
+              limit: int) -> list[Detection]:
+    """The first ``limit`` of the ranked detections that are not a worse fit
+    of a part already detected (:mod:`viewloc_core.distinct_parts`)."""
+    if len(detections) < 2 or limit < 2:
+        return detections[:limit]
+    # The surface samples are in the centred frame the fits were made in.
+    centred = [Pose(d.pose.R_m2c, d.pose.t_m2c + d.pose.R_m2c @ model.origin_offset_mm)
+               for d in detections]
+    keep = distinct_parts(centred, camera, model.diameter_mm,
+                          None if surface is None else surface[0], limit)
+    return [detections[i] for i in keep]
 
 
 def localize(
@@ -1167,18 +1185,39 @@ def localize(
     # fit (see _ranked).
     fitted = each_on_both(fit, first + (colour_located if colour is not None else []))
     fits, colour_fits = fitted[:len(first)], fitted[len(first):]
+    spares_fitted: list[_Located] = []
     if (contour is not None and len(located) > options.max_detections
             and not all(_settled(f) for f in fits)):
         in_colour = colour is not None
         n_spares = SPARE_LOCATIONS_IN_COLOUR if in_colour else SPARE_LOCATIONS
         spares = _spare_locations(located, options.max_detections, n_spares)
+        spares_fitted = spares
         fits += [f for f in each_on_both(fit, spares) if _convincing(f, in_colour)]
     fits += colour_fits
-    # _ranked lowers a score only to that of a detection above it, itself
-    # at least min_score: nothing falls under min_score on the way.
-    detections = _ranked([f for f in fits if f.detection.score >= min_score],
+
+    def answer() -> list[Detection]:
+        """The first max_detections of the ranked fits that are each a part
+        of its own (:func:`_distinct`)."""
+        ranked = _ranked([f for f in fits if f.detection.score >= min_score],
                          by_colour=colour is not None)
-    detections = detections[: options.max_detections]
+        return _distinct(ranked, model, camera, surface, options.max_detections)
+
+    detections = answer()
+    # With more than one detection wanted, places the first fits left free
+    # (fits of one part twice, fits under min_score) go to the next
+    # locations not yet fitted, as many at a time as places are free, until
+    # none is left. One detection wanted has its spares (above) instead.
+    fitted_locations = {id(loc) for loc in first + spares_fitted}
+    unfitted = [loc for loc in located if id(loc) not in fitted_locations]
+    while options.max_detections > 1 and len(detections) < options.max_detections and unfitted:
+        batch = unfitted[: options.max_detections - len(detections)]
+        unfitted = unfitted[len(batch):]
+        fits += each_on_both(fit, batch)
+        detections = answer()
+    # Scores do not rise down the list: a detection ranked below another is
+    # reported with no more quality than it (never under min_score: the
+    # one above is at least that).
+    detections = _non_increasing(detections)
     timing["pose"] = (time.perf_counter() - t4) * 1e3
     timing["total"] = (time.perf_counter() - t0) * 1e3
     return LocalizationResult(detections, timing)

@@ -77,6 +77,15 @@ def bracket_contour_scene(renderer):
     return renderer, prepare(mesh), model
 
 
+#: Two lights from different sides so faces differ in brightness, as on a
+#: lit inspection table.
+TABLE_LIGHTS = [
+    Light("directional", direction_cam=(0.6, 0.5, 1.0), intensity=3.0),
+    Light("directional", direction_cam=(-0.7, -0.2, 0.6), intensity=1.2),
+    Light("ambient", intensity=0.2),
+]
+
+
 def render_scene(
     renderer: Renderer,
     mesh: trimesh.Trimesh,
@@ -95,14 +104,17 @@ def render_scene(
         z = gen.uniform(pose.t_m2c[2] + 50, pose.t_m2c[2] + 500)
         t = z * np.array([(uv[0] - camera.cx) / camera.fx, (uv[1] - camera.cy) / camera.fy, 1])
         items.append((prepare(box), Pose(R, t)))
-    # Two lights from different sides so faces differ in brightness, as on
-    # a lit inspection table.
-    lights = [
-        Light("directional", direction_cam=(0.6, 0.5, 1.0), intensity=3.0),
-        Light("directional", direction_cam=(-0.7, -0.2, 0.6), intensity=1.2),
-        Light("ambient", intensity=0.2),
-    ]
-    return renderer.render_scene(items, camera, lights=lights, background_rgb=(40, 40, 40)).color
+    return renderer.render_scene(items, camera, lights=TABLE_LIGHTS,
+                                 background_rgb=(40, 40, 40)).color
+
+
+def render_copies(renderer: Renderer, mesh: trimesh.Trimesh, camera: Camera,
+                  poses: list[Pose]) -> np.ndarray:
+    """Colour image of copies of ``mesh``, one at each of ``poses``, lit as
+    by :func:`render_scene`."""
+    prepared = prepare(mesh)
+    return renderer.render_scene([(prepared, p) for p in poses], camera, lights=TABLE_LIGHTS,
+                                 background_rgb=(40, 40, 40)).color
 
 
 def faint_noise(shape: tuple[int, int], seed: int, blur_px: float, mean: float,
