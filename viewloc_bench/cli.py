@@ -12,7 +12,7 @@ from typing import Any
 from viewloc_bench import lmo, runner, sets
 from viewloc_bench.localizers import Backend, CoreBackend, EngineUnavailableError, HttpBackend
 
-ALL_SETS = ("paper", "hard", "novel", "lmo")
+ALL_SETS = ("paper", "hard", "novel", "multi", "lmo")
 QUICK_IMAGES_PER_N = 2
 QUICK_NEGATIVES = 2
 QUICK_LMO_IMAGES = 20
@@ -65,6 +65,19 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
+def set_spec(name: str, per_n: int | None, scale: float) -> sets.SetSpec:
+    """A generated set's parameters: full size (``per_n`` None) or ``per_n`` images per N.
+
+    A smaller set keeps at most :data:`QUICK_NEGATIVES` negatives per object,
+    and none when the full set has none (the multi set).
+    """
+    make_spec = sets.SPECS[name]
+    if per_n is None:
+        return make_spec(scale=scale)
+    negatives = min(per_n, QUICK_NEGATIVES, make_spec().negatives)
+    return make_spec(per_n, negatives, scale)
+
+
 def load_sets(args: argparse.Namespace, names: list[str]) -> dict[str, sets.BenchSet]:
     """Generate (or reuse) and load the requested sets, printing the time each took."""
     root = args.out / "sets"
@@ -76,12 +89,7 @@ def load_sets(args: argparse.Namespace, names: list[str]) -> dict[str, sets.Benc
     for name in names:
         t0 = time.perf_counter()
         if name in sets.SPECS:
-            make_spec = sets.SPECS[name]
-            spec = (
-                make_spec(scale=args.scale)
-                if per_n is None
-                else make_spec(per_n, min(per_n, QUICK_NEGATIVES), args.scale)
-            )
+            spec = set_spec(name, per_n, args.scale)
             folder = sets.generate(spec, args.seed, root, workers=args.workers)
             bench = sets.load_generated(folder)
             took = time.perf_counter() - t0

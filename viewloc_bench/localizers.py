@@ -1,5 +1,9 @@
 """The method under test, as one function ``(image, camera) -> list[Detection]`` per object.
 
+The function also takes ``max_detections`` when an image holds several
+instances of the object (the multi set); without it, the backend's own
+setting applies (one detection unless the backend was made otherwise).
+
 Two backends learn an object and hand back that function: :class:`CoreBackend`
 calls ``viewloc_core`` directly, :class:`HttpBackend` goes through the HTTP
 API of API.md (``--url``). Anything with a ``learn`` method of the same
@@ -12,7 +16,6 @@ import hashlib
 import io
 import json
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -25,7 +28,24 @@ from viewloc_core.camera import Camera
 from viewloc_core.detection import Detection, Similarity2D
 from viewloc_core.pose import Pose
 
-Localizer = Callable[[NDArray[np.uint8], Camera], list[Detection]]
+
+class Localizer(Protocol):
+    """Finds one learned object in an image."""
+
+    def __call__(
+        self, image: NDArray[np.uint8], camera: Camera, max_detections: int = 1
+    ) -> list[Detection]:
+        """Detections, best first.
+
+        Parameters
+        ----------
+        image : (H, W, 3) uint8
+            RGB.
+        camera : Camera
+        max_detections : int
+            Most detections wanted (instances of the object to find).
+        """
+        ...
 
 
 class EngineUnavailableError(RuntimeError):
@@ -40,7 +60,7 @@ class LearnedObject:
     ----------
     name : str
     localize : Localizer
-        ``(image (H, W, 3) uint8 RGB, camera) -> detections``, best first.
+        ``(image (H, W, 3) uint8 RGB, camera[, max_detections]) -> detections``, best first.
     learn_s : float
         Wall time of learning (for HTTP: upload until the job succeeded).
     training_views, model_views : int or None
@@ -97,9 +117,11 @@ class CoreBackend:
         t0 = time.perf_counter()
         model = learn_from_mesh(mesh, LearningConfig(), None, rng=self.seed)
         learn_s = time.perf_counter() - t0
-        options = LocalizeOptions(max_detections=self.max_detections, refine=self.refine)
 
-        def run(image: NDArray[np.uint8], camera: Camera) -> list[Detection]:
+        def run(
+            image: NDArray[np.uint8], camera: Camera, max_detections: int = self.max_detections
+        ) -> list[Detection]:
+            options = LocalizeOptions(max_detections=max_detections, refine=self.refine)
             return list(localize(model, image, camera, options).detections)
 
         return LearnedObject(
@@ -169,7 +191,14 @@ class HttpLocalizer:
         self.options_json = options_json
         self.last_timing_ms: dict[str, float] = {}
 
-    def __call__(self, image: NDArray[np.uint8], camera: Camera) -> list[Detection]:
+    def __call__(
+        self, image: NDArray[np.uint8], camera: Camera, max_detections: int | None = None
+    ) -> list[Detection]:
+        """Detections, best first (``max_detections`` None: as in the options given)."""
+        options_json = self.options_json
+        if max_detections is not None:
+            options = {**json.loads(options_json), "max_detections": max_detections}
+            options_json = json.dumps(options)
         cam: dict[str, Any] = {"fx": camera.fx, "fy": camera.fy, "cx": camera.cx,
                                "cy": camera.cy}
         if camera.dist:
@@ -180,7 +209,7 @@ class HttpLocalizer:
         resp = self.client.post(
             f"/v1/objects/{self.object_id}/localize",
             files={"image": ("image.png", png, "image/png")},
-            data={"camera": json.dumps(cam), "options": self.options_json},
+            data={"camera": json.dumps(cam), "options": options_json},
         )
         t2 = time.perf_counter()
         if resp.status_code != 200:

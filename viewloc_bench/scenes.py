@@ -11,6 +11,13 @@ alone, that are still target pixels with the clutter in place). Clutter is
 re-drawn up to :data:`MAX_CLUTTER_ATTEMPTS` times; after that, the clutter is
 drawn only behind the target (visible fraction 1). Bounding spheres of target
 and clutter never intersect, and clutter objects do not intersect each other.
+
+Copies (multi-instance scenes): a scene may hold further instances of the
+target, same shape and finish (a tray of identical parts). Each lies apart
+from the others, in space (bounding spheres) and in the image (the circles
+about their projected origins that hold their projected hulls), so each can
+be seen whole; the occlusion rule then holds for every instance, and clutter
+avoids and, when drawn behind, stays behind all of them.
 """
 
 from __future__ import annotations
@@ -30,6 +37,8 @@ from viewloc_core.pose import Pose
 Array = NDArray[np.float64]
 
 MAX_CLUTTER_ATTEMPTS = 6
+#: Poses tried for one copy before the scene is declared impossible.
+MAX_COPY_ATTEMPTS = 300
 LABEL_TARGET = (1.0, 0.0, 0.0)
 LABEL_CLUTTER = (0.0, 1.0, 0.0)
 
@@ -80,7 +89,7 @@ class Placed:
 
 @dataclass(slots=True)
 class Scene:
-    """One drawn scene: target (or None for a negative), clutter, lights, background."""
+    """One drawn scene: target (or None for a negative), its copies, clutter, lights, background."""
 
     camera: Camera
     target: Placed | None
@@ -91,6 +100,12 @@ class Scene:
     fog_sdl: str = ""
     material: str = ""
     info: dict[str, object] = field(default_factory=dict)
+    copies: list[Placed] = field(default_factory=list)
+
+    @property
+    def instances(self) -> list[Placed]:
+        """The target and its copies (instance 0 is the target; empty for a negative)."""
+        return ([self.target] if self.target is not None else []) + self.copies
 
 
 def _colour(rng: np.random.Generator, v_min: float = 0.35) -> tuple[float, float, float]:
@@ -182,14 +197,85 @@ def _bounding_radius(shape: shapes.Shape) -> float:
     return float(np.linalg.norm(v, axis=1).max())
 
 
+def image_circle(camera: Camera, placed: Placed, pts_obj: Array) -> tuple[Array, float]:
+    """The circle about an instance's projected origin that holds its projected points.
+
+    Parameters
+    ----------
+    pts_obj : (N, 3) array
+        The instance's hull vertices (object frame, mm): the projected hull
+        holds the instance's whole silhouette.
+
+    Returns
+    -------
+    centre : (2,) array
+        Projected origin, px.
+    radius : float
+        px.
+    """
+    centre = camera.project(placed.pose.t_m2c[None])[0]
+    uv = camera.project(placed.pose.transform(pts_obj))
+    return centre, float(np.linalg.norm(uv - centre, axis=1).max())
+
+
+def sample_copies(
+    rng: np.random.Generator,
+    camera: Camera,
+    target: Placed,
+    target_pts: Array,
+    copies: int,
+    params: SceneParams,
+) -> list[Placed]:
+    """``copies`` more instances of the target, each apart from the target and the others.
+
+    Each copy is posed like the target (:func:`sample_target_pose`) and kept
+    when its bounding sphere meets no other instance's and its image circle
+    (:func:`image_circle`) overlaps no other instance's, so no instance hides
+    another.
+
+    Raises
+    ------
+    RuntimeError
+        When a copy finds no free place in :data:`MAX_COPY_ATTEMPTS` poses.
+    """
+    placed = [target]
+    circles = [image_circle(camera, target, target_pts)]
+    for k in range(copies):
+        for _try in range(MAX_COPY_ATTEMPTS):
+            pose = sample_target_pose(rng, camera, target_pts, params.distance_mm, params.margin_px)
+            candidate = Placed(target.shape, pose, target.texture, target.radius_mm)
+            centre, radius = image_circle(camera, candidate, target_pts)
+            apart_in_space = all(
+                np.linalg.norm(pose.t_m2c - o.pose.t_m2c) > candidate.radius_mm + o.radius_mm
+                for o in placed
+            )
+            apart_in_image = all(np.linalg.norm(centre - c) > radius + r for c, r in circles)
+            if apart_in_space and apart_in_image:
+                placed.append(candidate)
+                circles.append((centre, radius))
+                break
+        else:
+            raise RuntimeError(
+                f"could not place copy {k + 1} of {copies} apart from the other instances "
+                f"in {MAX_COPY_ATTEMPTS} poses ({camera.width}x{camera.height} image, "
+                f"distance {params.distance_mm} mm)"
+            )
+    return placed[1:]
+
+
 def sample_clutter(
     rng: np.random.Generator,
     camera: Camera,
     n: int,
     params: SceneParams,
-    target: Placed | None,
+    instances: list[Placed],
     behind_only: bool,
 ) -> list[Placed]:
+    """``n`` clutter objects apart from ``instances`` (the target and its copies) and each other.
+
+    ``behind_only`` puts every clutter object wholly behind the farthest
+    instance, so none of them can be hidden.
+    """
     out: list[Placed] = []
     for _ in range(n):
         shape = sample_clutter_shape(rng)
@@ -198,13 +284,14 @@ def sample_clutter(
         for _try in range(500):
             uv = np.array([[rng.uniform(0, camera.width - 1), rng.uniform(0, camera.height - 1)]])
             z_min, z_max = params.clutter_depth_mm
-            if behind_only and target is not None:
-                z_min = max(z_min, target.pose.t_m2c[2] + target.radius_mm + r + 1.0)
+            if behind_only and instances:
+                far = max(o.pose.t_m2c[2] + o.radius_mm for o in instances)
+                z_min = max(z_min, far + r + 1.0)
                 z_max = max(z_max, z_min + 200.0)
             z = rng.uniform(z_min, z_max)
             ray = camera.ray(uv)[0]
             c = ray * (z / ray[2])
-            others = ([target] if target is not None else []) + out
+            others = instances + out
             if all(np.linalg.norm(c - o.pose.t_m2c) > r + o.radius_mm for o in others):
                 R = Rotation.random(random_state=rng).as_matrix()
                 out.append(Placed(shape, Pose(R, c), tex, r))
@@ -278,6 +365,7 @@ def draw_scene(
     n_clutter: int,
     params: SceneParams,
     behind_only: bool = False,
+    copies: int = 0,
 ) -> Scene:
     """Draw one random scene (clutter drawn last so it can be re-drawn alone).
 
@@ -287,6 +375,10 @@ def draw_scene(
         The object to find; None draws a negative scene of clutter only.
     target_pts : (N, 3) array or None
         The target's mesh vertices (object frame, mm).
+    copies : int
+        Further instances of the target (:func:`sample_copies`), drawn after
+        the fog and before the clutter: with none, the generator is used
+        exactly as by scenes without copies, so those scenes stay the same.
     """
     lights = _lights(rng)
     bg_kind, bg = _background(rng, params)
@@ -302,16 +394,24 @@ def draw_scene(
         z_ref = target.pose.t_m2c[2] if target is not None else 800.0
         fog_c = pv.vec(np.full(3, rng.uniform(0.55, 0.9)))
         fog = f"fog {{ fog_type 1 distance {z_ref * rng.uniform(1.3, 3.0):.1f} rgb {fog_c} }}\n"
-    clutter = sample_clutter(rng, camera, n_clutter, params, target, behind_only)
-    return Scene(camera, target, clutter, lights, bg, bg_kind, fog, material)
+    placed_copies: list[Placed] = []
+    if copies > 0 and target is not None and target_pts is not None:
+        placed_copies = sample_copies(rng, camera, target, target_pts, copies, params)
+    instances = ([target] if target is not None else []) + placed_copies
+    clutter = sample_clutter(rng, camera, n_clutter, params, instances, behind_only)
+    return Scene(
+        camera, target, clutter, lights, bg, bg_kind, fog, material, copies=placed_copies
+    )
 
 
-def scene_sdl(scene: Scene, mode: str = "color") -> str:
+def scene_sdl(scene: Scene, mode: str = "color", focus: int = 0) -> str:
     """POV-Ray SDL of a scene.
 
-    ``mode`` is ``"color"`` (the test image), ``"label"`` (target red, clutter
-    green, self-lit, black background, no fog) or ``"target"`` (the target
-    alone, labelled).
+    ``mode`` is ``"color"`` (the test image, every instance), ``"label"``
+    (the focus instance red; clutter and the other instances, its occluders,
+    green; self-lit, black background, no fog) or ``"target"`` (the focus
+    instance alone, labelled). ``focus`` picks the instance of
+    :attr:`Scene.instances`: 0 the target, k the copy ``copies[k - 1]``.
     """
     parts = []
     if mode == "color":
@@ -321,8 +421,7 @@ def scene_sdl(scene: Scene, mode: str = "color") -> str:
         parts.append(scene.fog_sdl)
         for pos, rgb in scene.lights:
             parts.append(f"light_source {{ {pv.cam_point(pos)} color rgb {pv.vec(rgb)} }}\n")
-        objs = ([scene.target] if scene.target else []) + scene.clutter
-        for o in objs:
+        for o in scene.instances + scene.clutter:
             parts.append(shapes.to_pov(o.shape, o.texture, pv.pose_matrix_sdl(o.pose)) + "\n")
         return "".join(parts)
 
@@ -333,27 +432,29 @@ def scene_sdl(scene: Scene, mode: str = "color") -> str:
         )
 
     parts.append(pv.scene_header(scene.camera))
-    if scene.target is not None:
-        parts.append(
-            shapes.to_pov(
-                scene.target.shape, flat(LABEL_TARGET), pv.pose_matrix_sdl(scene.target.pose)
-            )
-        )
+    instances = scene.instances
+    if focus and not 0 <= focus < len(instances):
+        raise ValueError(f"focus {focus}: the scene has {len(instances)} instances")
+    if instances:
+        o = instances[focus]
+        parts.append(shapes.to_pov(o.shape, flat(LABEL_TARGET), pv.pose_matrix_sdl(o.pose)))
     if mode == "label":
-        for o in scene.clutter:
+        occluders = [o for k, o in enumerate(instances) if k != focus] + scene.clutter
+        for o in occluders:
             parts.append(shapes.to_pov(o.shape, flat(LABEL_CLUTTER), pv.pose_matrix_sdl(o.pose)))
     return "\n".join(parts) + "\n"
 
 
-def target_mask(scene: Scene, threads: int = 1) -> NDArray[np.bool_]:
-    """(H, W) bool: the target's pixels when rendered alone."""
+def target_mask(scene: Scene, threads: int = 1, focus: int = 0) -> NDArray[np.bool_]:
+    """(H, W) bool: the focus instance's pixels when rendered alone (``focus``: see
+    :func:`scene_sdl`)."""
     W, H = scene.camera.width, scene.camera.height
-    img = pv.render(scene_sdl(scene, "target"), W, H, antialias=None, threads=threads)
+    img = pv.render(scene_sdl(scene, "target", focus), W, H, antialias=None, threads=threads)
     return img[..., 0] > 127
 
 
-def visible_mask(scene: Scene, threads: int = 1) -> NDArray[np.bool_]:
-    """(H, W) bool: the target's pixels not hidden by clutter."""
+def visible_mask(scene: Scene, threads: int = 1, focus: int = 0) -> NDArray[np.bool_]:
+    """(H, W) bool: the focus instance's pixels not hidden by clutter or the other instances."""
     W, H = scene.camera.width, scene.camera.height
-    img = pv.render(scene_sdl(scene, "label"), W, H, antialias=None, threads=threads)
+    img = pv.render(scene_sdl(scene, "label", focus), W, H, antialias=None, threads=threads)
     return (img[..., 0] > 127) & (img[..., 1] < 128)

@@ -3,7 +3,9 @@
 A generated set lives in ``<root>/<name>-<hash>/`` where the hash covers the
 generator version, the seed and every parameter, so a folder is reused only
 when it would be generated identically. It holds the images (PNG), the
-visible masks of the target (``mask_visib/*.png``) and ``gt.json``::
+visible masks of the target (``mask_visib/<image stem>.png``; of its copies
+in multi-instance sets, ``mask_visib/<image stem>_c<k>.png``, k = 1, 2, ...)
+and ``gt.json``::
 
     {"generator_version", "name", "seed", "params", "generation_s",
      "camera": {"fx", "fy", "cx", "cy", "width", "height", "K"},
@@ -12,7 +14,10 @@ visible masks of the target (``mask_visib/*.png``) and ``gt.json``::
                         "symmetries_continuous": [{"axis", "offset"}, ...]}},
      "images": [{"file", "object", "present", "n_clutter", "R", "t_mm",
                  "visible_fraction", "distance_mm", "material", "background",
-                 "lights", "fog"}, ...]}
+                 "lights", "fog", "copies"}, ...]}
+
+``copies`` (multi-instance sets only) lists the target's copies in the image,
+each ``{"R", "t_mm", "visible_fraction", "distance_mm"}``.
 
 Every image has its own random generator seeded from (seed, set, object,
 N, index): the quick subset is the first images of the full set, and the set
@@ -45,7 +50,7 @@ from viewloc_core.pose import Pose, orthonormalize
 Array = NDArray[np.float64]
 
 GENERATOR_VERSION = "1"
-SET_CODES = {"paper": 1, "hard": 2, "novel": 3}
+SET_CODES = {"paper": 1, "hard": 2, "novel": 3, "multi": 4}
 
 
 @dataclass(frozen=True, slots=True)
@@ -65,6 +70,8 @@ class SetSpec:
     negatives: int
     scene: scenes.SceneParams = field(default_factory=scenes.SceneParams)
     antialias: float = 0.3
+    #: Instances of the object in each image that has it (the target and copies - 1 copies).
+    copies: int = 1
 
     @property
     def camera(self) -> Camera:
@@ -131,8 +138,26 @@ def novel_spec(images_per_n: int = 10, negatives: int = 4, scale: float = 1.0) -
     )
 
 
+def multi_spec(images_per_n: int = 8, negatives: int = 0, scale: float = 1.0) -> SetSpec:
+    """The multi set: three copies of one part per image in the hard set's scenes.
+
+    Bracket and clamp, N = 0 and 4 clutter objects. Measures finding several
+    instances at once (``max_detections`` = 3): each copy lies apart from the
+    others and keeps the visible fraction of the occlusion rule
+    (:mod:`viewloc_bench.scenes`). No negatives by default: the other sets
+    measure false positives.
+    """
+    return replace(
+        hard_spec(images_per_n, negatives, scale),
+        name="multi",
+        objects=("bracket", "clamp"),
+        n_values=(0, 4),
+        copies=3,
+    )
+
+
 class SpecFactory(Protocol):
-    """A set's parameters at a size: ``paper_spec``, ``hard_spec``, ``novel_spec``."""
+    """A set's parameters at a size: ``paper_spec``, ``hard_spec``, ``novel_spec``, ..."""
 
     def __call__(
         self, images_per_n: int = ..., negatives: int = ..., scale: float = ...
@@ -140,7 +165,12 @@ class SpecFactory(Protocol):
 
 
 #: The generated sets by name, each called without sizes for its full size.
-SPECS: dict[str, SpecFactory] = {"paper": paper_spec, "hard": hard_spec, "novel": novel_spec}
+SPECS: dict[str, SpecFactory] = {
+    "paper": paper_spec,
+    "hard": hard_spec,
+    "novel": novel_spec,
+    "multi": multi_spec,
+}
 
 
 @dataclass(frozen=True, slots=True)
@@ -199,10 +229,20 @@ class BenchSet:
     meta: dict[str, Any] = field(default_factory=dict)
 
 
+def spec_params(spec: SetSpec) -> dict[str, Any]:
+    """The parameters that name a set (hashed) and are recorded in its ``gt.json``."""
+    params = asdict(spec)
+    if spec.copies == 1:
+        # Sets of one instance per image were hashed before ``copies`` existed:
+        # leaving the key out keeps their cached folders' names and gt.json.
+        del params["copies"]
+    return params
+
+
 def spec_hash(spec: SetSpec, seed: int) -> str:
     """Hash of generator version, seed and parameters (12 hex digits)."""
     blob = json.dumps(
-        {"version": GENERATOR_VERSION, "seed": seed, "spec": asdict(spec)}, sort_keys=True
+        {"version": GENERATOR_VERSION, "seed": seed, "spec": spec_params(spec)}, sort_keys=True
     )
     return hashlib.sha256(blob.encode()).hexdigest()[:12]
 
@@ -253,21 +293,15 @@ def _render_one(
     if not present:
         n = int(rng.integers(max(spec.n_values) // 2, max(spec.n_values) + 1))
     scene = scenes.draw_scene(
-        rng, camera, shape if present else None, pts if present else None, n, spec.scene
+        rng,
+        camera,
+        shape if present else None,
+        pts if present else None,
+        n,
+        spec.scene,
+        copies=spec.copies - 1 if present else 0,
     )
-    visible = 1.0
-    mask = np.zeros((camera.height, camera.width), dtype=bool)
-    if present:
-        alone = scenes.target_mask(scene, threads)
-        for attempt in range(scenes.MAX_CLUTTER_ATTEMPTS + 1):
-            mask = scenes.visible_mask(scene, threads) if n > 0 else alone
-            visible = float(mask.sum() / max(1, alone.sum()))
-            if visible >= spec.scene.min_visible:
-                break
-            behind = attempt + 1 >= scenes.MAX_CLUTTER_ATTEMPTS
-            scene.clutter = scenes.sample_clutter(
-                rng, camera, n, spec.scene, scene.target, behind_only=behind
-            )
+    masks, visible = _visible_masks(spec, scene, rng, n, threads) if present else ([], [])
     img = pv.render(
         scenes.scene_sdl(scene, "color"),
         camera.width,
@@ -287,15 +321,61 @@ def _render_one(
         "fog": bool(scene.fog_sdl),
     }
     if present and scene.target is not None:
-        Image.fromarray((mask * 255).astype(np.uint8)).save(folder / "mask_visib" / f"{stem}.png")
-        entry.update(
-            R=scene.target.pose.R_m2c.tolist(),
-            t_mm=scene.target.pose.t_m2c.tolist(),
-            visible_fraction=round(visible, 4),
-            distance_mm=float(np.linalg.norm(scene.target.pose.t_m2c)),
-            material=scene.material,
-        )
+        for k, mask in enumerate(masks):
+            mask_stem = stem if k == 0 else f"{stem}_c{k}"
+            Image.fromarray((mask * 255).astype(np.uint8)).save(
+                folder / "mask_visib" / f"{mask_stem}.png"
+            )
+        entry.update(_instance_entry(scene.target, visible[0]), material=scene.material)
+        if scene.copies:
+            entry["copies"] = [
+                _instance_entry(c, v) for c, v in zip(scene.copies, visible[1:], strict=True)
+            ]
     return entry
+
+
+def _instance_entry(placed: scenes.Placed, visible: float) -> dict[str, Any]:
+    """``gt.json`` fields of one instance: pose, visible fraction, distance (mm)."""
+    return {
+        "R": placed.pose.R_m2c.tolist(),
+        "t_mm": placed.pose.t_m2c.tolist(),
+        "visible_fraction": round(visible, 4),
+        "distance_mm": float(np.linalg.norm(placed.pose.t_m2c)),
+    }
+
+
+def _visible_masks(
+    spec: SetSpec, scene: scenes.Scene, rng: np.random.Generator, n: int, threads: int
+) -> tuple[list[NDArray[np.bool_]], list[float]]:
+    """Visible masks and fractions of every instance, re-drawing the clutter until
+    each keeps ``min_visible`` (the occlusion rule in :mod:`viewloc_bench.scenes`).
+
+    Returns
+    -------
+    masks : list of (H, W) bool arrays
+        One per instance of :attr:`scenes.Scene.instances` (the target first).
+    visible : list of float
+        Their visible fractions (pixels kept over pixels rendered alone).
+    """
+    instances = scene.instances
+    alone = [scenes.target_mask(scene, threads, focus=k) for k in range(len(instances))]
+    # With one instance and no clutter nothing can hide it: its alone-mask is
+    # its visible mask (a render saved, as before copies existed).
+    single = len(instances) == 1
+    masks, visible = alone, [1.0] * len(instances)
+    for attempt in range(scenes.MAX_CLUTTER_ATTEMPTS + 1):
+        masks = [
+            scenes.visible_mask(scene, threads, focus=k) if n > 0 or not single else alone[k]
+            for k in range(len(instances))
+        ]
+        visible = [float(m.sum() / max(1, a.sum())) for m, a in zip(masks, alone, strict=True)]
+        if min(visible) >= spec.scene.min_visible:
+            break
+        behind = attempt + 1 >= scenes.MAX_CLUTTER_ATTEMPTS
+        scene.clutter = scenes.sample_clutter(
+            rng, spec.camera, n, spec.scene, instances, behind_only=behind
+        )
+    return masks, visible
 
 
 def generate(
@@ -343,7 +423,7 @@ def generate(
         "generator_version": GENERATOR_VERSION,
         "name": spec.name,
         "seed": seed,
-        "params": asdict(spec),
+        "params": spec_params(spec),
         "generation_s": round(elapsed, 2),
         "camera": {
             "fx": cam.fx,
@@ -415,13 +495,18 @@ def load_generated(folder: Path) -> BenchSet:
     images = []
     for e in gt["images"]:
         if e["present"]:
-            pose = Pose(orthonormalize(np.asarray(e["R"])), np.asarray(e["t_mm"]))
-            target = Target(
-                e["object"], pose, f"N={e['n_clutter']}", e["n_clutter"], e["visible_fraction"],
-                _conditions(e),
+            # The target and each of its copies: one target per instance.
+            targets = tuple(
+                Target(
+                    e["object"],
+                    Pose(orthonormalize(np.asarray(inst["R"])), np.asarray(inst["t_mm"])),
+                    f"N={e['n_clutter']}", e["n_clutter"], inst["visible_fraction"],
+                    _conditions(e),
+                )
+                for inst in [e, *e.get("copies", [])]
             )
         else:
-            target = Target(e["object"], None, "negative", e["n_clutter"],
-                            conditions=_conditions(e))
-        images.append(BenchImage(folder / e["file"], camera, (target,)))
+            targets = (Target(e["object"], None, "negative", e["n_clutter"],
+                              conditions=_conditions(e)),)
+        images.append(BenchImage(folder / e["file"], camera, targets))
     return BenchSet(gt["name"], folder, objects, images, gt["generation_s"], gt)

@@ -1,7 +1,8 @@
 """Tiny generated sets shared by the benchmark tests.
 
 Paper: 96x72, 3 images + 1 negative. Novel: 160x120, one image per object at N = 2
-+ 1 negative per object.
++ 1 negative per object. Multi: 160x120, one image per object (bracket, clamp) with
+three instances among N = 2 clutter objects, no negatives.
 """
 
 import dataclasses
@@ -36,3 +37,12 @@ def tiny_novel_spec() -> sets.SetSpec:
 @pytest.fixture(scope="session")
 def tiny_novel_set(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return _generated(tmp_path_factory, tiny_novel_spec())
+
+
+def tiny_multi_spec() -> sets.SetSpec:
+    return dataclasses.replace(sets.multi_spec(1, 0, scale=0.25), n_values=(2,))
+
+
+@pytest.fixture(scope="session")
+def tiny_multi_set(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return _generated(tmp_path_factory, tiny_multi_spec())

@@ -1,16 +1,20 @@
-"""The benchmark's ``--url`` backend against a real service: reuse, round trip, server timings."""
+"""The benchmark's backends: ``--url`` against a real service (reuse, round trip, server
+timings), and what both ask the method for."""
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable
 from pathlib import Path
+from types import SimpleNamespace
 
 import httpx
 import numpy as np
+import pytest
 
 from tests.app.conftest import LiveServer, make_server
 from tests.app.learned import BARBELL, BENCH_NAME, LEARNING, LearnedStore, learned_barbell
-from viewloc_bench.localizers import HttpBackend, HttpLocalizer
+from viewloc_bench.localizers import CoreBackend, HttpBackend, HttpLocalizer
 from viewloc_bench.sets import BenchObject
 from viewloc_core.camera import Camera
 from viewloc_core.pose import Pose
@@ -55,3 +59,46 @@ def test_http_backend_reuses_the_learned_object_and_records_timings(
     # Other options (here another seed) are another object: not reused.
     other = HttpBackend(srv.url, seed=1, learning={"max_level": 1, "min_level": 1})
     assert other.object_name(obj, BARBELL.read_bytes()) != BENCH_NAME
+
+
+class _RecordingClient:
+    """Stands in for httpx.Client: keeps each request's form data, answers no detections."""
+
+    def __init__(self) -> None:
+        self.forms: list[dict[str, str]] = []
+
+    def post(self, url: str, files: object, data: dict[str, str]) -> httpx.Response:
+        self.forms.append(data)
+        return httpx.Response(200, json={"detections": [], "timing_ms": {"total": 1.0}})
+
+
+def test_http_localizer_asks_for_as_many_detections_as_wanted() -> None:
+    client = _RecordingClient()
+    options = json.dumps({"max_detections": 1, "refine": True})
+    localizer = HttpLocalizer(client, "obj-1", options)
+    image = np.zeros((8, 8, 3), np.uint8)
+    cam = Camera(10.0, 10.0, 4.0, 4.0, 8, 8)
+    assert localizer(image, cam) == [] and localizer(image, cam, max_detections=3) == []
+    assert client.forms[0]["options"] == options  # as before: the options given
+    assert json.loads(client.forms[1]["options"]) == {"max_detections": 3, "refine": True}
+
+
+def test_core_backend_passes_max_detections_to_the_core(monkeypatch: pytest.MonkeyPatch) -> None:
+    import viewloc_core.learn
+    import viewloc_core.localize
+
+    wanted: list[tuple[int, bool]] = []
+
+    def fake_localize(model: object, image: object, camera: object,
+                      options: viewloc_core.localize.LocalizeOptions) -> SimpleNamespace:
+        wanted.append((options.max_detections, options.refine))
+        return SimpleNamespace(detections=())
+
+    monkeypatch.setattr(viewloc_core.learn, "learn_from_mesh", lambda *a, **k: SimpleNamespace())
+    monkeypatch.setattr(viewloc_core.localize, "localize", fake_localize)
+    obj = BenchObject("barbell", BARBELL, 0.0, np.eye(4)[None], np.zeros((1, 3)))
+    run = CoreBackend(refine=False).learn(obj).localize
+    image = np.zeros((8, 8, 3), np.uint8)
+    cam = Camera(10.0, 10.0, 4.0, 4.0, 8, 8)
+    assert run(image, cam) == [] and run(image, cam, max_detections=3) == []
+    assert wanted == [(1, False), (3, False)]

@@ -1,13 +1,16 @@
 """Set generation: deterministic from the seed, cached, and its ground truth is sane."""
 
+import dataclasses
+import hashlib
 import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 from PIL import Image
 
 from tests.viewloc_bench.conftest import tiny_paper_spec
-from viewloc_bench import cli, sets, shapes
+from viewloc_bench import cli, povray, scenes, sets, shapes
 
 
 def _gt_without_timing(folder: Path) -> dict[str, object]:
@@ -75,8 +78,122 @@ def test_paper_and_hard_sets_keep_their_cached_folders() -> None:
     # not regenerate the others (change the pins only when that is the intent).
     assert sets.spec_hash(sets.paper_spec(), 0) == "f0d27aeac2b8"
     assert sets.spec_hash(sets.hard_spec(), 0) == "69c2dbb56efe"
+    assert sets.spec_hash(sets.novel_spec(), 0) == "6d024278c752"
     assert sets.spec_hash(sets.paper_spec(2, 2), 0) == "aa8eabbc3708"  # --quick
     assert sets.spec_hash(sets.hard_spec(2, 2), 0) == "866a203a9bf3"
+    assert sets.spec_hash(sets.novel_spec(2, 2), 0) == "f92c36b87c9b"
+    # More than one instance per image is another set, whatever else it shares.
+    multi = sets.multi_spec()
+    assert sets.spec_hash(multi, 0) != sets.spec_hash(dataclasses.replace(multi, copies=2), 0)
+    assert "copies" not in sets.spec_params(sets.hard_spec())
+    assert sets.spec_params(multi)["copies"] == 3
+
+
+def _draws_digest(spec: sets.SetSpec) -> str:
+    """Digest of the scenes drawn for the first image of each N and the first negative
+    (poses to 1e-6, no rendering), and of where each draw left its generator."""
+    h = hashlib.sha256()
+    for oi, n, i, present in sets._jobs(spec):
+        if i > 0:
+            continue
+        rng = sets._image_rng(0, spec, oi, n, i)
+        shape = shapes.SHAPES[spec.objects[oi]]()
+        pts = np.asarray(shapes.to_trimesh(shape).convex_hull.vertices, dtype=np.float64)
+        if not present:
+            n = int(rng.integers(max(spec.n_values) // 2, max(spec.n_values) + 1))
+        scene = scenes.draw_scene(
+            rng, spec.camera, shape if present else None, pts if present else None, n, spec.scene
+        )
+        values = [scene.background_sdl, scene.fog_sdl, scene.material, str(len(scene.clutter))]
+        values += [f"{x:.6f}" for _, rgb in scene.lights for x in rgb]
+        for o in ([scene.target] if scene.target else []) + scene.clutter:
+            values.append(o.texture)
+            values += [f"{x:.6f}" for x in [*o.pose.R_m2c.ravel(), *o.pose.t_m2c, o.radius_mm]]
+        values.append(str(rng.integers(2**31)))
+        h.update("|".join(values).encode())
+    return h.hexdigest()[:16]
+
+
+def test_scenes_without_copies_draw_as_before_copies_existed() -> None:
+    # Pinned with the generator before copies were added: scenes of one
+    # instance use the random generator exactly as then (same draws, same
+    # number of them), so the paper, hard and novel sets stay as they were.
+    assert _draws_digest(sets.paper_spec()) == "de297e1d827a0eff"
+    assert _draws_digest(sets.hard_spec()) == "9723f8f23f5f2f23"
+    assert _draws_digest(sets.novel_spec()) == "dd589d1c1213b7ab"
+
+
+def test_copies_come_after_target_and_fog_and_keep_apart() -> None:
+    spec = sets.multi_spec()
+    cam = spec.camera
+    shape = shapes.bracket()
+    pts = np.asarray(shapes.to_trimesh(shape).convex_hull.vertices, dtype=np.float64)
+    for i in range(6):
+        one = scenes.draw_scene(sets._image_rng(0, spec, 0, 4, i), cam, shape, pts, 4, spec.scene)
+        rng = sets._image_rng(0, spec, 0, 4, i)
+        three = scenes.draw_scene(rng, cam, shape, pts, 4, spec.scene, copies=2)
+        # Lights, background, fog and target are drawn before the copies.
+        assert (three.background_sdl, three.fog_sdl, three.material) == (
+            one.background_sdl, one.fog_sdl, one.material)
+        assert repr(three.lights) == repr(one.lights)
+        assert one.target is not None and three.target is not None
+        assert np.array_equal(three.target.pose.t_m2c, one.target.pose.t_m2c)
+        assert one.copies == [] and len(three.copies) == 2
+        assert three.instances == [three.target, *three.copies]
+        for c in three.copies:
+            assert c.shape is shape and c.texture == three.target.texture
+        circles = [scenes.image_circle(cam, o, pts) for o in three.instances]
+        for a in range(3):
+            for b in range(a + 1, 3):
+                oa, ob = three.instances[a], three.instances[b]
+                gap_mm = np.linalg.norm(oa.pose.t_m2c - ob.pose.t_m2c)
+                assert gap_mm > oa.radius_mm + ob.radius_mm
+                (ca, ra), (cb, rb) = circles[a], circles[b]
+                assert np.linalg.norm(ca - cb) > ra + rb
+        # Clutter avoids every instance; behind only, it is behind the farthest.
+        for o in three.clutter:
+            for inst in three.instances:
+                assert np.linalg.norm(o.pose.t_m2c - inst.pose.t_m2c) > o.radius_mm + inst.radius_mm
+        far = max(inst.pose.t_m2c[2] + inst.radius_mm for inst in three.instances)
+        behind = scenes.sample_clutter(rng, cam, 4, spec.scene, three.instances, behind_only=True)
+        assert all(o.pose.t_m2c[2] - o.radius_mm > far for o in behind)
+
+
+def test_copies_that_cannot_lie_apart_are_an_error() -> None:
+    # Parts so near that each spans most of the image (~100 of 160 px): no second fits.
+    spec = dataclasses.replace(sets.multi_spec(scale=0.25),
+                               scene=scenes.SceneParams(distance_mm=(200.0, 220.0)))
+    shape = shapes.bracket()
+    pts = np.asarray(shapes.to_trimesh(shape).convex_hull.vertices, dtype=np.float64)
+    with pytest.raises(RuntimeError, match="could not place copy 1 of 2"):
+        scenes.draw_scene(np.random.default_rng(0), spec.camera, shape, pts, 0, spec.scene,
+                          copies=2)
+
+
+def test_label_renders_focus_on_one_instance() -> None:
+    spec = sets.multi_spec(scale=0.25)
+    shape = shapes.clamp()
+    pts = np.asarray(shapes.to_trimesh(shape).convex_hull.vertices, dtype=np.float64)
+    scene = scenes.draw_scene(sets._image_rng(0, spec, 1, 4, 0), spec.camera, shape, pts, 4,
+                              spec.scene, copies=2)
+    red, green = povray.vec(scenes.LABEL_TARGET), povray.vec(scenes.LABEL_CLUTTER)
+    for focus, inst in enumerate(scene.instances):
+        label = scenes.scene_sdl(scene, "label", focus)
+        assert label.count(red) == 1 and label.count(green) == 2 + 4
+        # The red object is placed where the focus instance is (the transform
+        # follows the texture); the other instances are occluders.
+        placed_at = povray.pose_matrix_sdl(inst.pose)
+        after_red = label.split(red)[1]
+        assert after_red.index(placed_at) < after_red.index(green)
+        alone = scenes.scene_sdl(scene, "target", focus)
+        assert alone.count(red) == 1 and green not in alone and placed_at in alone
+    # The colour image shows every instance in the target's finish, and the clutter.
+    assert scene.target is not None
+    color = scenes.scene_sdl(scene, "color")
+    assert color.count(scene.target.texture) == 3
+    assert all(povray.pose_matrix_sdl(o.pose) in color for o in scene.instances + scene.clutter)
+    with pytest.raises(ValueError, match="3 instances"):
+        scenes.scene_sdl(scene, "label", 3)
 
 
 def test_novel_spec_is_the_hard_scenes_with_new_objects() -> None:
@@ -115,3 +232,57 @@ def test_novel_set_ground_truth_is_sane(tiny_novel_set: Path) -> None:
             assert mask.any()
     negatives = [e for e in gt["images"] if not e["present"]]
     assert sorted(e["object"] for e in negatives) == ["clamp", "knob", "tee"]
+
+
+def test_multi_spec_is_the_hard_scenes_with_three_instances() -> None:
+    multi, hard = sets.multi_spec(), sets.hard_spec()
+    assert (multi.objects, multi.n_values, multi.copies) == (("bracket", "clamp"), (0, 4), 3)
+    assert (multi.images_per_n, multi.negatives) == (8, 0)
+    assert multi.camera == hard.camera and multi.scene == hard.scene
+    assert cli.ALL_SETS.index("multi") == cli.ALL_SETS.index("novel") + 1
+    assert cli.ALL_SETS[-1] == "lmo"
+    # Smaller runs (--quick, --images-per-n) keep the others' negatives and add none here.
+    assert cli.set_spec("multi", 2, 1.0) == sets.multi_spec(2, 0)
+    assert cli.set_spec("paper", 2, 1.0) == sets.paper_spec(2, 2)
+    assert cli.set_spec("novel", 1, 0.25) == sets.novel_spec(1, 1, 0.25)
+    assert cli.set_spec("hard", None, 1.0) == sets.hard_spec()
+
+
+def test_multi_set_ground_truth_is_sane(tiny_multi_set: Path) -> None:
+    gt = json.loads((tiny_multi_set / "gt.json").read_text())
+    assert gt["params"]["copies"] == 3
+    bench = sets.load_generated(tiny_multi_set)
+    cam = bench.images[0].camera
+    assert (cam.width, cam.height) == (160, 120)
+    assert [e["object"] for e in gt["images"]] == ["bracket", "clamp"]
+    for e, im in zip(gt["images"], bench.images, strict=True):
+        assert e["present"] and e["n_clutter"] == 2 and len(e["copies"]) == 2
+        hull = np.asarray(shapes.to_trimesh(shapes.SHAPES[e["object"]]()).convex_hull.vertices)
+        stem = e["file"][:-4]
+        instances = [e, *e["copies"]]
+        circles, masks = [], []
+        for k, inst in enumerate(instances):
+            assert 450.0 <= inst["distance_mm"] <= 1000.0
+            assert inst["visible_fraction"] >= 0.6
+            uv = cam.project(hull @ np.asarray(inst["R"]).T + np.asarray(inst["t_mm"]))
+            assert uv.min() >= 0
+            assert uv[:, 0].max() <= cam.width - 1 and uv[:, 1].max() <= cam.height - 1
+            centre = cam.project(np.asarray(inst["t_mm"])[None])[0]
+            circles.append((centre, np.linalg.norm(uv - centre, axis=1).max()))
+            name = f"{stem}.png" if k == 0 else f"{stem}_c{k}.png"
+            masks.append(np.asarray(Image.open(tiny_multi_set / "mask_visib" / name)) > 0)
+            assert masks[-1].any()
+        # The instances lie apart in the image: no two share a pixel or overlap.
+        for a in range(3):
+            for b in range(a + 1, 3):
+                assert not (masks[a] & masks[b]).any()
+                assert np.linalg.norm(circles[a][0] - circles[b][0]) > circles[a][1] + circles[b][1]
+        # One target per instance, all of the same object, group and conditions.
+        assert len(im.targets) == 3
+        assert {(t.object_name, t.group, t.n_clutter) for t in im.targets} == {
+            (e["object"], "N=2", 2)}
+        assert all(t.conditions == im.targets[0].conditions for t in im.targets)
+        for t, inst in zip(im.targets, instances, strict=True):
+            assert t.pose is not None
+            assert np.allclose(t.pose.t_m2c, inst["t_mm"])
+            assert t.visible_fraction == inst["visible_fraction"]
