@@ -70,7 +70,8 @@ class SetSpec:
     negatives: int
     scene: scenes.SceneParams = field(default_factory=scenes.SceneParams)
     antialias: float = 0.3
-    #: Instances of the object in each image that has it (the target and copies - 1 copies).
+    #: Instances of the object in each image that has it: the target and
+    #: ``copies - 1`` copies of it.
     copies: int = 1
 
     @property
