@@ -106,26 +106,24 @@ def distinct_parts(
         Increasing indices: each pose that is not the same part as an
         earlier kept one.
     """
+    if samples is None:
+        return _distinct_by_centre(poses, camera, diameter_mm, limit)
+    return _distinct_by_footprint(poses, camera, diameter_mm, samples, limit)
+
+
+def _distinct_by_footprint(poses: Sequence[Pose], camera: Camera, diameter_mm: float,
+                           samples: SurfaceSamples, limit: int | None) -> list[int]:
+    """:func:`distinct_parts` with the part's surface: footprints decide."""
+    if not poses:
+        return []
+    # One grid for every fit of the image, sized by the best fit (fits of
+    # one part are within a few % of each other's depth).
+    cell_px = _cell_px(samples, camera, poses[0], diameter_mm)
     kept: list[int] = []
     cells: list[NDArray[np.int64]] = []
-    centres: list[tuple[NDArray[np.float64], float]] = []
     for i, pose in enumerate(poses):
         if limit is not None and len(kept) >= limit:
             break
-        z = max(float(pose.t_m2c[2]), 1e-6)
-        centre = camera.project(pose.t_m2c[None])[0]
-        diameter_px = camera.fx * diameter_mm / z
-        if samples is None:
-            same = any(np.hypot(*(centre - c)) < SAME_PART_CENTRE_SHARE * min(d, diameter_px)
-                       for c, d in centres)
-            if not same:
-                kept.append(i)
-                centres.append((centre, diameter_px))
-            continue
-        # One grid for every fit of the image: the first kept fit's cell
-        # size (fits of one part are within a few % of each other's depth).
-        if not cells:
-            cell_px = _cell_px(samples, camera, pose, diameter_mm)
         mine = footprint(samples, camera, pose, cell_px)
         same = len(mine) > 0 and any(
             len(other) > 0 and np.intersect1d(mine, other, assume_unique=True).size
@@ -134,4 +132,21 @@ def distinct_parts(
         if not same:
             kept.append(i)
             cells.append(mine)
+    return kept
+
+
+def _distinct_by_centre(poses: Sequence[Pose], camera: Camera, diameter_mm: float,
+                        limit: int | None) -> list[int]:
+    """:func:`distinct_parts` without a mesh: projected centres decide."""
+    kept: list[int] = []
+    centres: list[tuple[NDArray[np.float64], float]] = []
+    for i, pose in enumerate(poses):
+        if limit is not None and len(kept) >= limit:
+            break
+        centre = camera.project(pose.t_m2c[None])[0]
+        diameter_px = camera.fx * diameter_mm / max(float(pose.t_m2c[2]), 1e-6)
+        if not any(np.hypot(*(centre - c)) < SAME_PART_CENTRE_SHARE * min(d, diameter_px)
+                   for c, d in centres):
+            kept.append(i)
+            centres.append((centre, diameter_px))
     return kept

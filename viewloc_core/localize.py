@@ -1185,13 +1185,12 @@ def localize(
     # fit (see _ranked).
     fitted = each_on_both(fit, first + (colour_located if colour is not None else []))
     fits, colour_fits = fitted[:len(first)], fitted[len(first):]
-    spares_fitted: list[_Located] = []
+    spares: list[_Located] = []
     if (contour is not None and len(located) > options.max_detections
             and not all(_settled(f) for f in fits)):
         in_colour = colour is not None
         n_spares = SPARE_LOCATIONS_IN_COLOUR if in_colour else SPARE_LOCATIONS
         spares = _spare_locations(located, options.max_detections, n_spares)
-        spares_fitted = spares
         fits += [f for f in each_on_both(fit, spares) if _convincing(f, in_colour)]
     fits += colour_fits
 
@@ -1207,7 +1206,7 @@ def localize(
     # (fits of one part twice, fits under min_score) go to the next
     # locations not yet fitted, as many at a time as places are free, until
     # none is left. One detection wanted has its spares (above) instead.
-    fitted_locations = {id(loc) for loc in first + spares_fitted}
+    fitted_locations = {id(loc) for loc in first + spares}
     unfitted = [loc for loc in located if id(loc) not in fitted_locations]
     while options.max_detections > 1 and len(detections) < options.max_detections and unfitted:
         batch = unfitted[: options.max_detections - len(detections)]
