@@ -5,6 +5,8 @@ import math
 import cv2
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from tests.viewloc_core.conftest import blob
@@ -12,7 +14,13 @@ from viewloc_core.camera import Camera
 from viewloc_core.contour_model import build_contour_model
 from viewloc_core.errors import InvalidImageError, InvalidInputError
 from viewloc_core.pose import Pose, rotation_angle_deg
-from viewloc_core.refine import RefineOptions, prepare_edges, refine_pose
+from viewloc_core.refine import (
+    RefineOptions,
+    correlation_inflation,
+    nearest_neighbours,
+    prepare_edges,
+    refine_pose,
+)
 from viewloc_core.render import prepare
 from viewloc_core.robust import median
 from viewloc_core.view_sphere import subdivided_sphere
@@ -62,6 +70,58 @@ def test_converges_from_a_perturbed_pose(bracket_contour_scene, seed, cluttered)
     assert res.covariance_6x6.shape == (6, 6) and np.all(np.isfinite(res.pose_std))
     # Depth is the least certain direction of a single view.
     assert res.pose_std[5] == res.pose_std[3:].max()
+
+
+def _circle(n: int) -> np.ndarray:
+    """(n, 2) points evenly along a circle of radius 100 px, in order."""
+    a = np.linspace(0.0, 2.0 * math.pi, n, endpoint=False)
+    return np.stack([320.0 + 100.0 * np.cos(a), 240.0 + 100.0 * np.sin(a)], axis=1)
+
+
+def test_independent_residuals_are_not_inflated():
+    r = np.random.default_rng(0).normal(0.0, 0.5, 400)
+    assert 1.0 <= correlation_inflation(r, nearest_neighbours(_circle(400))[0]) < 1.3
+
+
+def test_residuals_correlated_along_the_contour_inflate_the_variance():
+    # A first-order autoregressive run along the contour, rho = 0.8: the
+    # variance of a fit grows by (1 + rho) / (1 - rho) = 9.
+    rng = np.random.default_rng(1)
+    r = np.empty(2000)
+    r[0] = rng.normal()
+    for i in range(1, len(r)):
+        r[i] = 0.8 * r[i - 1] + rng.normal(0.0, 0.6)
+    assert 7.0 < correlation_inflation(r, nearest_neighbours(_circle(2000))[0]) < 11.5
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 10_000), st.floats(0.01, 100.0), st.floats(-5.0, 5.0))
+def test_inflation_is_bounded_and_ignores_the_residuals_unit_and_offset(seed, scale, offset):
+    rng = np.random.default_rng(seed)
+    uv = rng.uniform(0.0, 640.0, (60, 2))
+    r = rng.normal(0.0, 1.0, 60) + np.sin(uv[:, 0] / 40.0)
+    r[rng.random(60) < 0.2] = np.nan  # points without a residual
+    neighbour, _ = nearest_neighbours(uv)
+    f = correlation_inflation(r, neighbour)
+    assert 1.0 <= f <= 39.0 + 1e-9
+    assert correlation_inflation(scale * r + offset, neighbour) == pytest.approx(f, rel=1e-6)
+
+
+def test_a_fit_reports_its_correlated_residuals_in_its_uncertainty(bracket_contour_scene):
+    # The same fit measured with and without the inflation (quick fits skip
+    # it): the same pose, every standard deviation larger by one factor.
+    renderer, prepared, model = bracket_contour_scene
+    rng = np.random.default_rng(0)
+    truth = Pose(Rotation.random(random_state=0).as_matrix(), np.array([10.0, -5.0, 600.0]))
+    image = np.where((out := renderer.render(prepared, CAM, truth)).mask[..., None], out.color,
+                     _clutter(rng))
+    init = _perturbed(truth, rng, 3.0, 0.01)
+    full = refine_pose(image, CAM, init, model)
+    bare = refine_pose(image, CAM, init, model, RefineOptions(measure_chance=False))
+    np.testing.assert_allclose(full.pose.t_m2c, bare.pose.t_m2c)
+    ratio = full.pose_std / bare.pose_std
+    assert ratio.min() > 1.2
+    np.testing.assert_allclose(ratio, ratio[0], rtol=1e-9)
 
 
 def test_wrong_pose_gets_a_low_inlier_fraction(bracket_contour_scene):
