@@ -144,7 +144,20 @@ def edge_residuals(
     level: int, search: int, min_gradient: float, cos_max: float, prior: F64,
 ) -> tuple[F64, F64]:  # pragma: no cover - compiled
     """Residuals of the contour points that find an edge on one pyramid
-    level, and their Jacobian.
+    level, and their Jacobian (:func:`edge_residuals_of_points` without
+    the points' indices)."""
+    J, r, _ = edge_residuals_of_points(grad, uv, n2, X, t, fx, fy, level, search,
+                                       min_gradient, cos_max, prior)
+    return J, r
+
+
+@njit(cache=True, nogil=True)
+def edge_residuals_of_points(
+    grad: NDArray[np.float32], uv: F64, n2: F64, X: F64, t: F64, fx: float, fy: float,
+    level: int, search: int, min_gradient: float, cos_max: float, prior: F64,
+) -> tuple[F64, F64, NDArray[np.int64]]:  # pragma: no cover - compiled
+    """Residuals of the contour points that find an edge on one pyramid
+    level, their Jacobian, and which points they are.
 
     Parameters
     ----------
@@ -168,6 +181,8 @@ def edge_residuals(
         pixels per (rad, mm), rotation about the object origin.
     r : (M,) float64
         Residuals ``n · (π(X) - edge)``, full-resolution pixels.
+    point : (M,) int64
+        Index into ``uv`` of the point each residual belongs to.
     """
     f = 2.0**level
     n = uv.shape[0]
@@ -186,10 +201,12 @@ def edge_residuals(
             m += 1
     J = np.empty((m, 6))
     r = np.empty(m)
+    point = np.empty(m, np.int64)
     k = 0
     for i in range(n):
         if not found[i]:
             continue
+        point[k] = i
         # The matched edge lies offset·f pixels along n2 from the projection.
         r[k] = -offset[i] * f
         x, y, z = X[i, 0], X[i, 1], X[i, 2]
@@ -207,7 +224,7 @@ def edge_residuals(
         J[k, 4] = b
         J[k, 5] = c
         k += 1
-    return J, r
+    return J, r, point
 
 
 def warm_up() -> None:

@@ -48,7 +48,7 @@ from scipy.spatial import cKDTree
 
 from viewloc_core.both_cores import each_on_both
 from viewloc_core.camera import Camera
-from viewloc_core.contour_kernels import edge_residuals, project_contour
+from viewloc_core.contour_kernels import edge_residuals_of_points, project_contour
 from viewloc_core.contour_model import ContourModel
 from viewloc_core.errors import InvalidImageError, InvalidInputError
 from viewloc_core.gauss_newton_kernel import gauss_newton_level
@@ -331,6 +331,7 @@ class _Projection:
 class _Matches:
     J: Array  # (M, 6) residual Jacobian, full-res pixels per (rad, mm)
     r: Array  # (M,) residuals, full-res pixels
+    point: NDArray[np.int64]  # (M,) index of each residual's projected contour point
     n_projected: int
 
 
@@ -485,10 +486,11 @@ def _matches(
     search: int,
     options: RefineOptions,
 ) -> _Matches:
-    J, r = edge_residuals(edges.gradients[level], proj.uv, proj.n2, proj.X, pose.t_m2c,
-                          camera.fx, camera.fy, level, search, options.min_gradient,
-                          math.cos(math.radians(options.max_angle_deg)), _search_prior(search))
-    return _Matches(J, r, len(proj.uv))
+    J, r, point = edge_residuals_of_points(
+        edges.gradients[level], proj.uv, proj.n2, proj.X, pose.t_m2c, camera.fx, camera.fy,
+        level, search, options.min_gradient, math.cos(math.radians(options.max_angle_deg)),
+        _search_prior(search))
+    return _Matches(J, r, point, len(proj.uv))
 
 
 @dataclass(frozen=True, slots=True)
@@ -643,14 +645,9 @@ def _final(
         chance = _chance_fraction(proj, camera, edges, search, opts)
         support = _support(n_inliers, m.n_projected, chance, spacing_px)
         if n_inliers >= 6:
-            # The points that found an edge, in the order edge_residuals
-            # returns their residuals; the outliers' are left out.
-            found, _ = search_normals(edges.gradients[0], proj.uv, proj.n2, search,
-                                      opts.min_gradient,
-                                      math.cos(math.radians(opts.max_angle_deg)),
-                                      _search_prior(search))
+            # The outliers' residuals are left out.
             residual_of_point = np.full(len(proj.uv), np.nan)
-            residual_of_point[np.flatnonzero(found)[inl]] = m.r[inl]
+            residual_of_point[m.point[inl]] = m.r[inl]
             inflation = correlation_inflation(residual_of_point, neighbour)
     if n_inliers < 6:
         return RefinementResult(pose, False, iterations, math.inf, fraction,
