@@ -65,11 +65,15 @@ def silhouette_mask(
         return mask
     uv = np.zeros((len(pts_cam), 2))
     uv[z_ok] = camera.project(pts_cam[z_ok])
-    # Sub-pixel precision: fillPoly with shift=4 takes 1/16-pixel coordinates.
+    # Sub-pixel precision: shift=4 takes 1/16-pixel coordinates.
     tri = np.round(uv[faces[keep]] * 16).astype(np.int64)
     bound = 16 * 4 * max(camera.width, camera.height)
     tri = np.clip(tri, -bound, bound).astype(np.int32)
-    cv2.fillPoly(mask, list(tri), 255, lineType=cv2.LINE_8, shift=4)
+    # One triangle at a time: fillPoly given them all at once fills by the
+    # even-odd rule, so where a front and a back face overlap (everywhere
+    # on a closed mesh) the pixels were left out.
+    for triangle in tri:
+        cv2.fillConvexPoly(mask, triangle, 255, lineType=cv2.LINE_8, shift=4)
     return mask
 
 
