@@ -48,8 +48,9 @@ def to_pixel(x: float, y: float, z: float, intrinsics: F64, dist: F64,
 def project_contour(
     points: Points, normals: Points, R: F64, t: F64, intrinsics: F64, dist: F64,
     distorted: bool, window: F64,
-) -> tuple[F64, F64, F64]:  # pragma: no cover - compiled
-    """Contour points seen at a pose: pixels, unit 2D normals, camera points.
+) -> tuple[F64, F64, F64, NDArray[np.int64]]:  # pragma: no cover - compiled
+    """Contour points seen at a pose: pixels, unit 2D normals, camera points
+    and which of the input points they are.
 
     Parameters
     ----------
@@ -79,11 +80,14 @@ def project_contour(
         the 3D normal projects.
     X : (M, 3) float64
         The points in the camera frame, mm.
+    index : (M,) int64
+        Row of each in ``points`` (ascending).
     """
     n = points.shape[0]
     uv = np.empty((n, 2))
     n2 = np.empty((n, 2))
     X = np.empty((n, 3))
+    index = np.empty(n, np.int64)
     m = 0
     for i in range(n):
         px, py, pz = points[i, 0], points[i, 1], points[i, 2]
@@ -113,8 +117,9 @@ def project_contour(
         X[m, 0] = x
         X[m, 1] = y
         X[m, 2] = z
+        index[m] = i
         m += 1
-    return uv[:m], n2[:m], X[:m]
+    return uv[:m], n2[:m], X[:m], index[:m]
 
 
 @njit(cache=True, nogil=True)
@@ -231,7 +236,7 @@ def warm_up() -> None:
     """Compile (or load from numba's cache) for the types the refinement passes."""
     pts = np.array([[0.0, 0.0, 0.0]])
     nrm = np.array([[1.0, 0.0, 0.0]])
-    uv, n2, X = project_contour(pts, nrm, np.eye(3), np.array([0.0, 0.0, 100.0]),
+    uv, n2, X, _ = project_contour(pts, nrm, np.eye(3), np.array([0.0, 0.0, 100.0]),
                                 np.array([100.0, 100.0, 8.0, 8.0, 100.0]), np.zeros(8), False,
                                 np.array([8.0, 8.0, 7.0, 7.0]))
     edge_residuals(np.zeros((16, 16, 2), np.float32), uv, n2, X, np.zeros(3), 100.0, 100.0, 0,

@@ -42,13 +42,24 @@ from viewloc_core.view_sphere import view_rotation
 
 Array = NDArray[np.float64]
 
-#: Bump when the array layout changes.
-CONTOUR_SCHEMA_VERSION = 1
+#: Bump when the array layout or the meaning of its values changes. Version 1
+#: had no :data:`KIND_INNER` (its inner occluding contours are
+#: :data:`KIND_OCCLUDING`); it is still read.
+CONTOUR_SCHEMA_VERSION = 2
+_READABLE_SCHEMA_VERSIONS = (1, 2)
 
-#: Point kinds: the outline (occluding contours and the edges of an open
-#: surface) and sharp creases between two faces.
+#: Point kinds: the outline against the surroundings (occluding contours
+#: with the background behind them, and the edges of an open surface),
+#: sharp creases between two faces, and inner occluding contours (the part
+#: in front of itself, e.g. a knob's foot seen against its cap). The first
+#: is an edge against almost any background; the other two are edges only
+#: where the part's own two sides differ in brightness.
 KIND_OCCLUDING = 0
 KIND_CREASE = 1
+KIND_INNER = 2
+
+#: The kinds of the outline in the wider sense: every occluding contour.
+OUTLINE_KINDS = (KIND_OCCLUDING, KIND_INNER)
 
 
 class _DepthRenderer(Protocol):
@@ -71,7 +82,7 @@ class ContourModel:
         view's own camera they are parallel to the image plane. Sign is
         arbitrary (the edge search is sign-agnostic).
     kinds : (V, P) uint8
-        :data:`KIND_OCCLUDING` or :data:`KIND_CREASE`.
+        :data:`KIND_OCCLUDING`, :data:`KIND_CREASE` or :data:`KIND_INNER`.
     counts : (V,) int32
         Valid points per view.
     d0_mm, f_px : float
@@ -103,6 +114,8 @@ class ContourModel:
             raise ModelFormatError("contour model arrays have inconsistent shapes", "contour")
         if V == 0 or np.any(self.counts < 0) or np.any(self.counts > self.points_obj.shape[1]):
             raise ModelFormatError("contour model counts out of range", "contour")
+        if self.kinds.size and int(self.kinds.max()) > KIND_INNER:
+            raise ModelFormatError("contour model has an unknown point kind", "contour")
 
     @property
     def n_views(self) -> int:
@@ -125,29 +138,35 @@ class ContourModel:
         return int(nearest_view(self.directions, np.ascontiguousarray(pose.R_m2c, np.float64),
                                 np.ascontiguousarray(pose.t_m2c, np.float64)))
 
-    def view_points(self, view: int, kind: int | None = None,
+    def view_points(self, view: int, kind: int | tuple[int, ...] | None = None,
                     ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
         """(points_obj (n, 3), normals_obj (n, 3)) of one view, float32; only
-        those of ``kind`` (:data:`KIND_OCCLUDING` or :data:`KIND_CREASE`) when given."""
+        those of ``kind`` (one of the ``KIND_*`` or a tuple of them) when given."""
         n = int(self.counts[view])
         if kind is None:
             return self.points_obj[view, :n], self.normals_obj[view, :n]
-        keep = self.kinds[view, :n] == kind
+        keep = np.isin(self.kinds[view, :n], kind)
         return self.points_obj[view, :n][keep], self.normals_obj[view, :n][keep]
+
+    def view_kinds(self, view: int) -> NDArray[np.uint8]:
+        """(n,) kind of each point of one view, in :meth:`view_points` order."""
+        return self.kinds[view, :int(self.counts[view])]
 
     def outline_only(self) -> ContourModel:
         """The same model without its crease points (see
-        :mod:`viewloc_core.crease_visibility`)."""
+        :mod:`viewloc_core.crease_visibility`); occluding contours keep their kinds."""
         points = np.zeros_like(self.points_obj)
         normals = np.zeros_like(self.normals_obj)
+        kinds = np.full_like(self.kinds, KIND_OCCLUDING)
         counts = np.zeros_like(self.counts)
         for v in range(self.n_views):
-            pts, nrm = self.view_points(v, KIND_OCCLUDING)
-            points[v, :len(pts)] = pts
-            normals[v, :len(pts)] = nrm
-            counts[v] = len(pts)
-        return ContourModel(self.directions, points, normals,
-                            np.full_like(self.kinds, KIND_OCCLUDING), counts, self.d0_mm,
+            keep = np.isin(self.view_kinds(v), OUTLINE_KINDS)
+            n = int(np.count_nonzero(keep))
+            points[v, :n] = self.points_obj[v, :len(keep)][keep]
+            normals[v, :n] = self.normals_obj[v, :len(keep)][keep]
+            kinds[v, :n] = self.view_kinds(v)[keep]
+            counts[v] = n
+        return ContourModel(self.directions, points, normals, kinds, counts, self.d0_mm,
                             self.f_px, self.image_size)
 
     def to_arrays(self) -> dict[str, Any]:
@@ -169,7 +188,7 @@ class ContourModel:
         """Inverse of :meth:`to_arrays`; raises ModelFormatError on bad content."""
         try:
             version = int(data["schema_version"])
-            if version != CONTOUR_SCHEMA_VERSION:
+            if version not in _READABLE_SCHEMA_VERSIONS:
                 raise ModelFormatError(f"unknown contour schema version {version}", "contour")
             size = data["image_size"]
             return cls(
@@ -409,6 +428,10 @@ def _view_contour(
     gnorm = np.linalg.norm(g, axis=1)
     use_mask = is_occ & (gnorm > 0.05)
     normals[use_mask] = g[use_mask] / gnorm[use_mask, None]
-    # The edge of an open surface is part of the outline, not a crease.
+    # The edge of an open surface is part of the outline, not a crease. An
+    # occluding contour away from the silhouette's border (no gradient of
+    # the blurred mask, more than about 3 px inside) has the part itself
+    # behind it.
     kinds = np.where(is_occ | boundary[sel][idx], KIND_OCCLUDING, KIND_CREASE).astype(np.uint8)
+    kinds[is_occ & ~use_mask & ~boundary[sel][idx]] = KIND_INNER
     return pts[visible], normals[visible], kinds[visible]

@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from viewloc_core.camera import Camera
-from viewloc_core.contour_model import KIND_CREASE, KIND_OCCLUDING, ContourModel
+from viewloc_core.contour_model import KIND_CREASE, OUTLINE_KINDS, ContourModel
 from viewloc_core.pose import Pose
 from viewloc_core.refine import (
     RefineOptions,
@@ -77,7 +77,7 @@ def confirmed_shares(
     """
     options = RefineOptions()
     cos_max = math.cos(math.radians(options.max_angle_deg))
-    found = {KIND_OCCLUDING: [0, 0], KIND_CREASE: [0, 0]}
+    found: dict[int | tuple[int, ...], list[int]] = {OUTLINE_KINDS: [0, 0], KIND_CREASE: [0, 0]}
     for image, R in zip(images, rotations, strict=True):
         pose = Pose(np.asarray(R, np.float64), np.array([0.0, 0.0, d0_mm]))
         grad = prepare_edges(image, 1).gradients[0]
@@ -91,11 +91,11 @@ def confirmed_shares(
             tally[0] += int(np.count_nonzero(ok & (np.abs(offset) <= options.inlier_px)))
             tally[1] += len(uv)
 
-    def share(kind: int) -> float:
+    def share(kind: int | tuple[int, ...]) -> float:
         hits, total = found[kind]
         return hits / total if total else math.nan
 
-    return share(KIND_OCCLUDING), share(KIND_CREASE)
+    return share(OUTLINE_KINDS), share(KIND_CREASE)
 
 
 def creases_show(outline_share: float, crease_share: float) -> bool:

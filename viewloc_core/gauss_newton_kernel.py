@@ -175,8 +175,9 @@ def gauss_newton_level(
     for _ in range(iterations):
         view = nearest_view(directions, R, t)
         n = counts[view]
-        uv, n2, X = project_contour(points_obj[view, :n:stride], normals_obj[view, :n:stride],
-                                    R, t, intrinsics, dist, distorted, window)
+        uv, n2, X, _ = project_contour(points_obj[view, :n:stride],
+                                       normals_obj[view, :n:stride], R, t, intrinsics, dist,
+                                       distorted, window)
         if uv.shape[0] == 0:
             break
         prior = prior_by_search[search, :2 * search - 1]

@@ -24,7 +24,7 @@ def _array_projection(points, normals, R, t, camera, lo, hi):
     d = camera.project(step) - uv
     norm = np.hypot(d[:, 0], d[:, 1])
     ok = (uv >= lo).all(axis=1) & (uv <= hi).all(axis=1) & (norm > 1e-6)
-    return uv[ok], d[ok] / norm[ok, None], X[ok]
+    return uv[ok], d[ok] / norm[ok, None], X[ok], np.flatnonzero(front)[ok]
 
 
 def _array_residuals(grad, uv, n2, X, t, camera, level, search, prior):
@@ -62,12 +62,14 @@ def test_compiled_steps_equal_the_array_formulation(seed, distorted, level):
     intrinsics = np.array([camera.fx, camera.fy, camera.cx, camera.cy, camera.focal_px])
     coefficients = np.zeros(8)
     coefficients[:len(dist)] = dist
-    uv, n2, X = project_contour(points, normals, R, t, intrinsics, coefficients, distorted,
-                                window)
-    want_uv, want_n2, want_X = _array_projection(points, normals, R, t, camera, lo, hi)
+    uv, n2, X, index = project_contour(points, normals, R, t, intrinsics, coefficients,
+                                       distorted, window)
+    want_uv, want_n2, want_X, want_index = _array_projection(points, normals, R, t, camera,
+                                                              lo, hi)
     np.testing.assert_allclose(uv, want_uv, rtol=1e-12, atol=1e-9)
     np.testing.assert_allclose(n2, want_n2, rtol=1e-9, atol=1e-9)
     np.testing.assert_allclose(X, want_X, rtol=1e-12, atol=1e-9)
+    np.testing.assert_array_equal(index, want_index)
 
     size = (camera.height >> level, camera.width >> level)
     grad = rng.normal(0.0, 0.05, (*size, 2)).astype(np.float32)
@@ -82,9 +84,11 @@ def test_compiled_steps_equal_the_array_formulation(seed, distorted, level):
 def test_points_behind_the_camera_or_outside_the_window_are_dropped():
     points = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -150.0], [500.0, 0.0, 0.0]])
     normals = np.tile([1.0, 0.0, 0.0], (3, 1))
-    uv, n2, X = project_contour(points, normals, np.eye(3), np.array([0.0, 0.0, 100.0]),
-                                np.array([500.0, 500.0, 320.0, 240.0, 500.0]), np.zeros(8),
-                                False, np.array([319.5, 239.5, 318.5, 238.5]))
+    uv, n2, X, index = project_contour(
+        points, normals, np.eye(3), np.array([0.0, 0.0, 100.0]),
+        np.array([500.0, 500.0, 320.0, 240.0, 500.0]), np.zeros(8), False,
+        np.array([319.5, 239.5, 318.5, 238.5]))
     np.testing.assert_allclose(uv, [[320.0, 240.0]])
     np.testing.assert_allclose(n2, [[1.0, 0.0]])
     np.testing.assert_allclose(X, [[0.0, 0.0, 100.0]])
+    np.testing.assert_array_equal(index, [0])

@@ -10,7 +10,9 @@ import trimesh
 from viewloc_core.camera import Camera
 from viewloc_core.contour_model import (
     KIND_CREASE,
+    KIND_INNER,
     KIND_OCCLUDING,
+    OUTLINE_KINDS,
     ContourModel,
     build_contour_model,
 )
@@ -53,7 +55,7 @@ def test_occluding_points_lie_on_rendered_depth_discontinuities(setup):
         vs, us = np.nonzero(jump & (depth > 0))
         boundary = np.column_stack([us, vs]).astype(float)
         pts, _ = model.view_points(v)
-        occ = model.kinds[v, : model.counts[v]] == KIND_OCCLUDING
+        occ = np.isin(model.view_kinds(v), OUTLINE_KINDS)
         uv = cam.project(pose.transform(pts[occ]))
         d = np.min(np.linalg.norm(uv[:, None, :] - boundary[None, :, :], axis=2), axis=1)
         worst.append(np.percentile(d, 80))
@@ -93,7 +95,17 @@ def test_arrays_round_trip(setup):
     np.testing.assert_array_equal(back.points_obj, model.points_obj)
     np.testing.assert_array_equal(back.counts, model.counts)
     assert back.image_size == model.image_size and back.d0_mm == model.d0_mm
-    assert '"schema_version": 1' in model.metadata_json()
+    np.testing.assert_array_equal(back.kinds, model.kinds)
+    assert '"schema_version": 2' in model.metadata_json()
+    # A model stored before inner contours had a kind of their own still loads.
+    old = model.to_arrays()
+    old["schema_version"] = 1
+    old["kinds"] = np.where(old["kinds"] == KIND_INNER, KIND_OCCLUDING, old["kinds"])
+    assert not np.any(ContourModel.from_arrays(old).kinds == KIND_INNER)
+    unknown = model.to_arrays()
+    unknown["kinds"] = np.full_like(unknown["kinds"], 7)
+    with pytest.raises(ModelFormatError, match="kind"):
+        ContourModel.from_arrays(unknown)
     broken = model.to_arrays()
     broken["schema_version"] = 99
     with pytest.raises(ModelFormatError):
@@ -116,7 +128,30 @@ def test_the_edge_of_an_open_surface_is_outline_and_outline_only_drops_creases(s
     kinds = model.kinds[0, :model.counts[0]]
     assert (kinds == KIND_OCCLUDING).sum() > 3 * (kinds == KIND_CREASE).sum() > 0
     outline = model.outline_only()
-    pts, _ = model.view_points(0, KIND_OCCLUDING)
+    pts, _ = model.view_points(0, OUTLINE_KINDS)
     assert outline.counts[0] == len(pts)
     np.testing.assert_array_equal(outline.view_points(0)[0], pts)
-    assert (outline.kinds == KIND_OCCLUDING).all()
+    assert not np.any(outline.view_kinds(0) == KIND_CREASE)
+
+
+def test_inner_occluding_contours_are_told_from_the_outline(setup):
+    """The wall seen in front of the base: its contour there has the part
+    behind it (inner); the outline has the background behind it."""
+    mesh, model, renderer = setup
+    cam = Camera(600.0, 600.0, 319.5, 239.5, 640, 480)
+    views_with_inner = 0
+    for v in range(model.n_views):
+        kinds = model.view_kinds(v)
+        if np.count_nonzero(kinds == KIND_INNER) < 5:
+            continue
+        views_with_inner += 1
+        pose = Pose(view_rotation(model.directions[v]), np.array([0.0, 0.0, 600.0]))
+        background = (renderer.render_depth(mesh, cam, pose).depth_mm <= 0).astype(np.uint8)
+        # Distance of each pixel to the nearest background pixel.
+        to_background = cv2.distanceTransform(1 - background, cv2.DIST_L2, 3)
+        pts, _ = model.view_points(v)
+        uv = np.rint(cam.project(pose.transform(pts))).astype(int)
+        d = to_background[uv[:, 1], uv[:, 0]]
+        assert np.median(d[kinds == KIND_INNER]) > 4.0
+        assert np.percentile(d[kinds == KIND_OCCLUDING], 90) <= 3.0
+    assert views_with_inner >= 5

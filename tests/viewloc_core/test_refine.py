@@ -5,14 +5,16 @@ import math
 import cv2
 import numpy as np
 import pytest
+import trimesh
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from tests.viewloc_core.conftest import blob
 from viewloc_core.camera import Camera
-from viewloc_core.contour_model import build_contour_model
+from viewloc_core.contour_model import KIND_CREASE, KIND_INNER, build_contour_model
 from viewloc_core.errors import InvalidImageError, InvalidInputError
+from viewloc_core.overlay import silhouette_mask
 from viewloc_core.pose import Pose, rotation_angle_deg
 from viewloc_core.refine import (
     RefineOptions,
@@ -23,7 +25,7 @@ from viewloc_core.refine import (
 )
 from viewloc_core.render import prepare
 from viewloc_core.robust import median
-from viewloc_core.view_sphere import subdivided_sphere
+from viewloc_core.view_sphere import subdivided_sphere, view_rotation
 
 CAM = Camera(600.0, 600.0, 322.5, 237.5, 640, 480)
 
@@ -324,3 +326,37 @@ def test_a_quick_fit_ends_where_the_full_fit_does(bracket_contour_scene, seed):
     assert rotation_angle_deg(quick.pose.R_m2c, full.pose.R_m2c) < 0.5
     assert np.linalg.norm(quick.pose.t_m2c - full.pose.t_m2c) < 2.5
     assert abs(quick.inlier_fraction - full.inlier_fraction) < 0.03
+
+
+
+def test_the_parts_own_edges_weigh_less_than_its_outline(renderer):
+    """A flat-lit part shows its outline and none of its creases or inner
+    contours: the inlier fraction counts the missing ones at
+    ``self_edge_weight`` each, so a pose is not judged by edges the light
+    did not draw."""
+    plate = trimesh.creation.box((140.0, 140.0, 6.0))
+    plate.apply_translation([0.0, 0.0, 3.0])
+    boss = trimesh.creation.box((50.0, 50.0, 30.0))
+    boss.apply_translation([0.0, 0.0, 21.0])
+    mesh = trimesh.util.concatenate([plate, boss])
+    mesh.apply_translation(-mesh.bounds.mean(axis=0))
+    model = build_contour_model(mesh, np.array([[0.35, -0.25, 1.0]]), renderer, 600.0, 600.0,
+                                (320, 320), 200)
+    truth = Pose(view_rotation(model.directions[0]), np.array([0.0, 0.0, 600.0]))
+    # The boss's outline lies against the plate (inner), its top edges are creases.
+    kinds = model.view_kinds(0)
+    assert np.mean(kinds == KIND_INNER) > 0.15 and np.mean(kinds == KIND_CREASE) > 0.15
+    silhouette = silhouette_mask(CAM, truth.R_m2c, truth.t_m2c, mesh.vertices, mesh.faces)
+    image = np.where(silhouette[..., None] > 0, 170, 50).astype(np.uint8).repeat(3, axis=2)
+    fractions = {}
+    for weight in (1.0, 0.5, 0.0):
+        options = RefineOptions(self_edge_weight=weight, shift_search_px=0.0)
+        fit = refine_pose(image, CAM, truth, model, options)
+        assert rotation_angle_deg(fit.pose.R_m2c, truth.R_m2c) < 1.0
+        fractions[weight] = fit.inlier_fraction
+    # The outline alone is confirmed all along...
+    assert fractions[0.0] > 0.95
+    # ...and the part's own edges, missing, count as much as they weigh.
+    assert fractions[1.0] < fractions[0.5] - 0.05 < fractions[0.0] - 0.1
+    with pytest.raises(InvalidInputError, match="self_edge_weight"):
+        RefineOptions(self_edge_weight=1.5)
