@@ -300,7 +300,8 @@ class RefinementResult:
         Mean absolute residual of the inliers at the final pose, pixels.
     inlier_fraction : float
         Share of the projected (in-image) contour points with an image edge
-        within ``inlier_px`` of them at the final pose: a verification score.
+        within ``inlier_px`` of them at the final pose, the part's own edges
+        weighted by ``RefineOptions.self_edge_weight``: a verification score.
     covariance_6x6 : (6, 6) float64
         Covariance of (rotation about camera x, y, z through the object
         origin in rad, translation of the object origin along camera x, y, z
@@ -353,7 +354,6 @@ class _Matches:
     J: Array  # (M, 6) residual Jacobian, full-res pixels per (rad, mm)
     r: Array  # (M,) residuals, full-res pixels
     point: NDArray[np.int64]  # (M,) index of each residual's projected contour point
-    n_projected: int
 
 
 class _Projector:
@@ -522,7 +522,7 @@ def _matches(
         edges.gradients[level], proj.uv, proj.n2, proj.X, pose.t_m2c, camera.fx, camera.fy,
         level, search, options.min_gradient, math.cos(math.radians(options.max_angle_deg)),
         _search_prior(search))
-    return _Matches(J, r, point, len(proj.uv))
+    return _Matches(J, r, point)
 
 
 @dataclass(frozen=True, slots=True)
