@@ -148,9 +148,11 @@ class ContourModel:
         keep = np.isin(self.kinds[view, :n], kind)
         return self.points_obj[view, :n][keep], self.normals_obj[view, :n][keep]
 
-    def view_kinds(self, view: int) -> NDArray[np.uint8]:
-        """(n,) kind of each point of one view, in :meth:`view_points` order."""
-        return self.kinds[view, :int(self.counts[view])]
+    def view_kinds(self, view: int, kind: int | tuple[int, ...] | None = None,
+                   ) -> NDArray[np.uint8]:
+        """(n,) kind of each point :meth:`view_points` gives for the same arguments."""
+        kinds = self.kinds[view, :int(self.counts[view])]
+        return kinds if kind is None else kinds[np.isin(kinds, kind)]
 
     def outline_only(self) -> ContourModel:
         """The same model without its crease points (see
@@ -160,11 +162,11 @@ class ContourModel:
         kinds = np.full_like(self.kinds, KIND_OCCLUDING)
         counts = np.zeros_like(self.counts)
         for v in range(self.n_views):
-            keep = np.isin(self.view_kinds(v), OUTLINE_KINDS)
-            n = int(np.count_nonzero(keep))
-            points[v, :n] = self.points_obj[v, :len(keep)][keep]
-            normals[v, :n] = self.normals_obj[v, :len(keep)][keep]
-            kinds[v, :n] = self.view_kinds(v)[keep]
+            pts, nrm = self.view_points(v, OUTLINE_KINDS)
+            n = len(pts)
+            points[v, :n] = pts
+            normals[v, :n] = nrm
+            kinds[v, :n] = self.view_kinds(v, OUTLINE_KINDS)
             counts[v] = n
         return ContourModel(self.directions, points, normals, kinds, counts, self.d0_mm,
                             self.f_px, self.image_size)

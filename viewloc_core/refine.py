@@ -360,13 +360,14 @@ class _Projector:
     """Projects the contour of the view nearest to a pose; one per refinement.
 
     Keeps each view's points and normals (every ``stride``-th) as one
-    float64 (2n, 3) array, points first, converted once per view rather than
-    in every iteration; :func:`viewloc_core.contour_kernels.project_contour`
+    float64 (2n, 3) array, points first, with their (n,) weights in the
+    inlier fraction, converted once per view rather than in every
+    iteration; :func:`viewloc_core.contour_kernels.project_contour`
     projects them.
     """
 
-    __slots__ = ("camera", "model", "stride", "kind", "self_edge_weight", "_stacked",
-                 "_weights", "intrinsics", "dist", "distorted", "_windows")
+    __slots__ = ("camera", "model", "stride", "kind", "self_edge_weight", "_views",
+                 "intrinsics", "dist", "distorted", "_windows")
 
     def __init__(self, camera: Camera, model: ContourModel, stride: int = 1,
                  kind: int | tuple[int, ...] | None = None,
@@ -376,27 +377,24 @@ class _Projector:
         self.stride = stride
         self.kind = kind
         self.self_edge_weight = self_edge_weight
-        self._stacked: dict[int, Array] = {}
-        self._weights: dict[int, Array] = {}
+        self._views: dict[int, tuple[Array, Array]] = {}
         self.intrinsics = np.array([camera.fx, camera.fy, camera.cx, camera.cy,
                                      camera.focal_px])
         self.dist = camera.dist8
         self.distorted = camera.has_distortion
         self._windows: dict[float, Array] = {}
 
-    def _view(self, view: int) -> Array:
-        stacked = self._stacked.get(view)
-        if stacked is None:
+    def _view(self, view: int) -> tuple[Array, Array]:
+        """(stacked points and normals (2n, 3), weights (n,)) of one view."""
+        cached = self._views.get(view)
+        if cached is None:
             pts_obj, nrm_obj = self.model.view_points(view, self.kind)
             stacked = np.concatenate([pts_obj[::self.stride],
                                       nrm_obj[::self.stride]]).astype(np.float64)
-            self._stacked[view] = stacked
-            kinds = self.model.view_kinds(view)
-            if self.kind is not None:
-                kinds = kinds[np.isin(kinds, self.kind)]
-            self._weights[view] = np.where(kinds[::self.stride] == KIND_OCCLUDING, 1.0,
-                                           self.self_edge_weight)
-        return stacked
+            kinds = self.model.view_kinds(view, self.kind)[::self.stride]
+            weights = np.where(kinds == KIND_OCCLUDING, 1.0, self.self_edge_weight)
+            cached = self._views[view] = (stacked, weights)
+        return cached
 
     def window(self, margin_px: float) -> Array:
         """Centre and half-size of ``[margin, size - 1 - margin]`` on both axes, (4,)."""
@@ -412,8 +410,7 @@ class _Projector:
     def project(self, pose: Pose, margin_px: float) -> _Projection | None:
         """Projected in-image contour points, their unit 2D normals, camera
         points and weights."""
-        view = self.model.nearest_view(pose)
-        stacked = self._view(view)
+        stacked, weights = self._view(self.model.nearest_view(pose))
         n = len(stacked) // 2
         if n == 0:
             return None
@@ -422,7 +419,7 @@ class _Projector:
                                            self.window(margin_px))
         if len(uv) == 0:
             return None
-        return _Projection(uv, n2, X, self._weights[view][index])
+        return _Projection(uv, n2, X, weights[index])
 
 
 def project_contour_view(

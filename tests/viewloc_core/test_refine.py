@@ -328,7 +328,6 @@ def test_a_quick_fit_ends_where_the_full_fit_does(bracket_contour_scene, seed):
     assert abs(quick.inlier_fraction - full.inlier_fraction) < 0.03
 
 
-
 def test_the_parts_own_edges_weigh_less_than_its_outline(renderer):
     """A flat-lit part shows its outline and none of its creases or inner
     contours: the inlier fraction counts the missing ones at
