@@ -161,7 +161,10 @@ def main(argv: list[str] | None = None) -> int:
             "folder": str(bench.folder),
             "generation_s": bench.generation_s,
             "images": len(bench.images),
+            "images_sha256": sets.images_digest(bench.images),
         }
+        # Figures from two machines compare only on the same pixels (images_digest).
+        print(f"set {name}: images sha256 {entry['images_sha256'][:16]}")
         if not available:
             print(runner.format_table(name, bench, None, header_base))
             entry["status"] = "engine not available"

@@ -137,6 +137,9 @@ def test_cli_without_a_service_prints_the_table_and_exits_0(
     res = json.loads((tmp_path / "results.json").read_text())
     assert res["sets"]["paper"]["status"] == "engine not available"
     assert res["sets"]["paper"]["images"] == 11
+    # The fingerprint of the images the figures were measured on.
+    bench = sets.load_generated(Path(res["sets"]["paper"]["folder"]))
+    assert res["sets"]["paper"]["images_sha256"] == sets.images_digest(bench.images)
 
 
 def test_detection_from_api_json() -> None:

@@ -286,3 +286,28 @@ def test_multi_set_ground_truth_is_sane(tiny_multi_set: Path) -> None:
             assert t.pose is not None
             assert np.allclose(t.pose.t_m2c, inst["t_mm"])
             assert t.visible_fraction == inst["visible_fraction"]
+
+
+def test_images_digest_follows_the_pixels_not_the_files(tiny_paper_set: Path,
+                                                        tmp_path: Path) -> None:
+    bench = sets.load_generated(tiny_paper_set)
+    digest = sets.images_digest(bench.images)
+    assert len(digest) == 64 and digest == sets.images_digest(bench.images)
+    copy = tmp_path / "copy"
+    copy.mkdir()
+    for im in bench.images:
+        (copy / im.path.name).write_bytes(im.path.read_bytes())
+    moved = [dataclasses.replace(im, path=copy / im.path.name) for im in bench.images]
+    assert sets.images_digest(moved) == digest  # the folder does not count
+    first = moved[0].path
+    pixels = np.asarray(Image.open(first)).copy()
+    # The same pixels encoded otherwise: the same images.
+    Image.fromarray(pixels).save(first, compress_level=0)
+    assert first.read_bytes() != bench.images[0].path.read_bytes()
+    assert sets.images_digest(moved) == digest
+    # One pixel changed by one grey level: other images.
+    pixels[0, 0, 0] ^= 1
+    Image.fromarray(pixels).save(first)
+    assert sets.images_digest(moved) != digest
+    # So is another order of the same images.
+    assert sets.images_digest(bench.images[::-1]) != digest
