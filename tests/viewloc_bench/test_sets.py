@@ -309,5 +309,5 @@ def test_images_digest_follows_the_pixels_not_the_files(tiny_paper_set: Path,
     pixels[0, 0, 0] ^= 1
     Image.fromarray(pixels).save(first)
     assert sets.images_digest(moved) != digest
-    # So is another order of the same images.
+    # The same images in another order: another fingerprint.
     assert sets.images_digest(bench.images[::-1]) != digest
