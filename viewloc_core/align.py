@@ -54,6 +54,11 @@ from viewloc_core.features import (
     orientation_turn,
     wanted_bits,
 )
+from viewloc_core.line_crossing import (
+    chance_crossed_rate,
+    crossing_evidence,
+    crossing_log_ratios,
+)
 from viewloc_core.model import ModelView, ObjectModel
 from viewloc_core.pairing import PairingSet, strongest_pairings
 from viewloc_core.seeding import seed_similarities
@@ -524,6 +529,42 @@ def outline_evidence(index: ModelIndex, feats: ImageFeatures, views: NDArray[np.
     return llr / np.maximum(n_valid, 1) * outline_samples(index.outline_px[views], sims[:, 3])
 
 
+def outline_crossing_evidence(index: ModelIndex, feats: ImageFeatures, views: NDArray[np.int64],
+                              sims: F64, chance_rate: float) -> F64:
+    """Evidence of H hypotheses against lines of the image that run across
+    their coarse edge samples (:mod:`viewloc_core.line_crossing`), for their
+    whole outline as :func:`outline_evidence` counts it.
+
+    Parameters
+    ----------
+    index : ModelIndex
+    feats : ImageFeatures
+    views : (H,) int
+    sims : (H, 4) float64
+        Model view -> image similarities.
+    chance_rate : float
+        :func:`viewloc_core.line_crossing.chance_crossed_rate` of the image.
+
+    Returns
+    -------
+    (H,) float64
+        At most 0 where the samples are crossed more often than a part's.
+    """
+    if crossing_log_ratios(chance_rate)[0] == 0.0:
+        # The image's lines seldom cross: nothing to tell apart.
+        return np.zeros(len(views))
+    uv = sim2.apply_many(sims, index.coarse_pts[views])
+    tangent_rad = (index.coarse_bins[views] + 0.5) * (np.pi / ORIENTATION_BINS) + sims[:, 2:3]
+    h, w = feats.shape
+    u = np.clip(np.rint(uv[..., 0]).astype(np.int64), 0, w - 1)
+    v = np.clip(np.rint(uv[..., 1]).astype(np.int64), 0, h - 1)
+    turned = (index.coarse_bins[views] + orientation_turn(sims[:, 2])[:, None]) % ORIENTATION_BINS
+    found = (feats.orientation_bits[v, u].astype(np.int64) & wanted_bits(turned)) != 0
+    per_sample = crossing_evidence(feats, uv, tangent_rad, found, index.coarse_valid[views],
+                                   chance_rate)
+    return per_sample * outline_samples(index.outline_px[views], sims[:, 3])
+
+
 def coverage_many(feats: ImageFeatures, sims: F64, pts: F64, bins: NDArray[np.int64],
                    valid: NDArray[np.bool_]) -> F64:
     """``coverage`` for H hypotheses at once; pts (H, P, 2), bins/valid (H, P)."""
@@ -753,7 +794,12 @@ def align(
     theta_c = np.asarray((bins + 0.5) * (np.pi / ORIENTATION_BINS), dtype=np.float64)
     fitted = extend_many(feats, sims, index.coarse_pts[views], theta_c, index.coarse_valid[views],
                          config.coarse_radii_px, config.orientation_tol_deg)
-    evidence = outline_evidence(index, feats, views, fitted, chance)
+    # A place snapped onto a grid of background lines (a checkerboard, tiles)
+    # finds its edges as well as the part does, but those lines run on
+    # across it where the part's outline would end them
+    # (:mod:`viewloc_core.line_crossing`).
+    evidence = outline_evidence(index, feats, views, fitted, chance) + outline_crossing_evidence(
+        index, feats, views, fitted, chance_crossed_rate(feats))
     # No more likely object than clutter (or wholly outside the image): no match.
     order = np.argsort(-evidence, kind="stable")
     order = order[evidence[order] > 0]

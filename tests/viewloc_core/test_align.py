@@ -257,6 +257,34 @@ def test_outline_evidence_favours_the_true_similarity(renderer, bracket_mesh, br
 
 
 
+def test_crossing_evidence_spares_the_part_and_vanishes_on_plain_ground(
+        renderer, bracket_mesh, bracket_model):
+    """The part laid over a checkerboard ends the board's lines: at its true
+    similarity the crossing term does not count against it, though the
+    board's edges are often crossed; on the plain training background the
+    term is zero."""
+    from viewloc_core.align import outline_crossing_evidence
+    from viewloc_core.line_crossing import chance_crossed_rate
+
+    model = bracket_model
+    t = int(np.flatnonzero(np.all(model.training.sim_to_model == [0, 0, 0, 1], axis=1))[0])
+    view = int(model.training.model_view[t])
+    image, c = _training_image(renderer, bracket_mesh, model, t)
+    index = model_index(model)
+    true_sim = np.array([[c, c, 0.0, 1.0]])
+    views = np.array([view])
+    plain = extract_features(image)
+    assert outline_crossing_evidence(index, plain, views, true_sim,
+                                     chance_crossed_rate(plain))[0] == 0.0
+    rows, cols = np.indices(image.shape[:2])
+    board = np.where((((rows // 16) + (cols // 16)) % 2 == 0)[..., None], 60, 200)
+    background = np.all(image == 20, axis=2)[..., None]
+    on_board = extract_features(np.where(background, board, image).astype(np.uint8))
+    rate = chance_crossed_rate(on_board)
+    assert rate > 0.05
+    assert outline_crossing_evidence(index, on_board, views, true_sim, rate)[0] >= 0.0
+
+
 def test_features_of_a_contrasted_part_gain_their_pairing_strength_on_faint_texture():
     """The contrast prior of the pairings: on faint texture the corners of a
     contrasted square gain, the texture's features lose; on a plain
