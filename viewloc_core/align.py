@@ -556,10 +556,14 @@ def outline_crossing_evidence(index: ModelIndex, feats: ImageFeatures, views: ND
     uv = sim2.apply_many(sims, index.coarse_pts[views])
     tangent_rad = (index.coarse_bins[views] + 0.5) * (np.pi / ORIENTATION_BINS) + sims[:, 2:3]
     h, w = feats.shape
-    u = np.clip(np.rint(uv[..., 0]).astype(np.int64), 0, w - 1)
-    v = np.clip(np.rint(uv[..., 1]).astype(np.int64), 0, h - 1)
+    u = np.rint(uv[..., 0]).astype(np.int64)
+    v = np.rint(uv[..., 1]).astype(np.int64)
+    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
     turned = (index.coarse_bins[views] + orientation_turn(sims[:, 2])[:, None]) % ORIENTATION_BINS
-    found = (feats.orientation_bits[v, u].astype(np.int64) & wanted_bits(turned)) != 0
+    # A sample outside the image found nothing (the clipped look-up would
+    # read the border's edges).
+    found = inside & ((feats.orientation_bits[np.clip(v, 0, h - 1), np.clip(u, 0, w - 1)]
+                       .astype(np.int64) & wanted_bits(turned)) != 0)
     per_sample = crossing_evidence(feats, uv, tangent_rad, found, index.coarse_valid[views],
                                    chance_rate)
     return per_sample * outline_samples(index.outline_px[views], sims[:, 3])
