@@ -58,6 +58,7 @@ from viewloc_core.line_crossing import (
     chance_crossed_rate,
     crossing_evidence,
     crossing_log_ratios,
+    edge_at,
 )
 from viewloc_core.model import ModelView, ObjectModel
 from viewloc_core.pairing import PairingSet, strongest_pairings
@@ -555,15 +556,8 @@ def outline_crossing_evidence(index: ModelIndex, feats: ImageFeatures, views: ND
         return np.zeros(len(views))
     uv = sim2.apply_many(sims, index.coarse_pts[views])
     tangent_rad = (index.coarse_bins[views] + 0.5) * (np.pi / ORIENTATION_BINS) + sims[:, 2:3]
-    h, w = feats.shape
-    u = np.rint(uv[..., 0]).astype(np.int64)
-    v = np.rint(uv[..., 1]).astype(np.int64)
-    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
     turned = (index.coarse_bins[views] + orientation_turn(sims[:, 2])[:, None]) % ORIENTATION_BINS
-    # A sample outside the image found nothing (the clipped look-up would
-    # read the border's edges).
-    found = inside & ((feats.orientation_bits[np.clip(v, 0, h - 1), np.clip(u, 0, w - 1)]
-                       .astype(np.int64) & wanted_bits(turned)) != 0)
+    found = edge_at(feats, uv, wanted_bits(turned))
     per_sample = crossing_evidence(feats, uv, tangent_rad, found, index.coarse_valid[views],
                                    chance_rate)
     return per_sample * outline_samples(index.outline_px[views], sims[:, 3])

@@ -47,6 +47,31 @@ OBJECT_CROSSED_RATE = 0.05
 _MAX_CHANCE_PIXELS = 2000
 
 
+def edge_at(feats: ImageFeatures, uv: F64, want: NDArray[np.int64]) -> NDArray[np.bool_]:
+    """Whether the spread orientation map holds any of the ``want`` bits at
+    each point's nearest pixel.
+
+    Parameters
+    ----------
+    feats : ImageFeatures
+    uv : (..., 2) float64
+        Points in the image, pixels.
+    want : (...) int64
+        Orientation bits wanted at each point (:func:`wanted_bits`).
+
+    Returns
+    -------
+    (...) bool
+        False for points outside the image.
+    """
+    h, w = feats.shape
+    u = np.rint(uv[..., 0]).astype(np.int64)
+    v = np.rint(uv[..., 1]).astype(np.int64)
+    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    bits = feats.orientation_bits[np.clip(v, 0, h - 1), np.clip(u, 0, w - 1)]
+    return np.asarray(inside & ((bits.astype(np.int64) & want) != 0), np.bool_)
+
+
 def crossed(feats: ImageFeatures, uv: F64, tangent_rad: F64) -> NDArray[np.bool_]:
     """Whether an image edge at right angles to each point's tangent lies on
     both sides of it at every :data:`CROSSING_OFFSETS_PX`.
@@ -65,7 +90,6 @@ def crossed(feats: ImageFeatures, uv: F64, tangent_rad: F64) -> NDArray[np.bool_
     (...) bool
         False where any of the looked-at pixels is outside the image.
     """
-    h, w = feats.shape
     normal = np.stack([-np.sin(tangent_rad), np.cos(tangent_rad)], axis=-1)
     # The crossing edge runs along the normal: its orientation is the
     # normal's.
@@ -73,12 +97,7 @@ def crossed(feats: ImageFeatures, uv: F64, tangent_rad: F64) -> NDArray[np.bool_
     result = np.ones(tangent_rad.shape, bool)
     for offset in CROSSING_OFFSETS_PX:
         for side in (1.0, -1.0):
-            q = uv + side * offset * normal
-            u = np.rint(q[..., 0]).astype(np.int64)
-            v = np.rint(q[..., 1]).astype(np.int64)
-            inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
-            bits = feats.orientation_bits[np.clip(v, 0, h - 1), np.clip(u, 0, w - 1)]
-            result &= inside & ((bits.astype(np.int64) & want) != 0)
+            result &= edge_at(feats, uv + side * offset * normal, want)
     return result
 
 
