@@ -771,7 +771,6 @@ def _best_rival(
     full fit that ranks highest wins when it ranks higher than ``result``.
     """
     sym = model.symmetry_group()
-    quick_fits: list[tuple[float, int, Similarity2D, Pose, Pose]] = []
     starts = []
     for cand in candidates:
         if cand.log_likelihood_ratio < OTHER_VIEW_EVIDENCE_SHARE * evidence:
@@ -786,12 +785,23 @@ def _best_rival(
                for twin in shading.near.twins(result.pose) + shading.near.reversals(result.pose)
                + (shading.near.outline_turns(result.pose) if len(shading.near.transforms)
                   else [])]
+    distinct = []
     for view_c, sim_c, pose_c, quick_options in starts:
         if any(within_angle_deg(pose_c.R_m2c, R, sym, DISTINCT_VIEW_DEG) for R in tried):
             continue
         tried.append(pose_c.R_m2c)
+        distinct.append((view_c, sim_c, pose_c, quick_options))
+
+    def quick_fit(start_c: tuple[int, Similarity2D, Pose, RefineOptions],
+                  ) -> tuple[float, int, Similarity2D, Pose, Pose]:
+        view_c, sim_c, pose_c, quick_options = start_c
         quick = refine_pose(edges, camera, pose_c, contour, quick_options)
-        quick_fits.append((shading.rank(camera, quick), view_c, sim_c, pose_c, quick.pose))
+        return shading.rank(camera, quick), view_c, sim_c, pose_c, quick.pose
+
+    # The starts' fits are independent and compiled: they share the two
+    # cores (a single location's rivals are most of a localization's pose
+    # stage, and would otherwise leave the other core idle).
+    quick_fits = each_on_both(quick_fit, distinct)
     chosen = (result, t_view, similarity, start)
     if not quick_fits:
         return chosen
@@ -810,9 +820,12 @@ def _best_rival(
                       if f[0] >= current - NEAR_SYMMETRIC_MAX_SHORT_FIT_GAP]
     else:
         contenders = [f for f in quick_fits[:1] if f[0] > current]
-    for _, view_c, sim_c, pose_c, quick_pose in contenders:
+    def full_fit(quick_pose: Pose) -> tuple[RefinementResult, float]:
         other = refine_pose(edges, camera, quick_pose, contour, fit_options.final)
-        rank = shading.rank(camera, other)
+        return other, shading.rank(camera, other)
+
+    full_fits = each_on_both(full_fit, [f[4] for f in contenders])
+    for (_, view_c, sim_c, pose_c, _), (other, rank) in zip(contenders, full_fits, strict=True):
         if rank > current:
             current, chosen = rank, (other, view_c, sim_c, pose_c)
     return chosen
@@ -835,13 +848,23 @@ def _refit_from_other_starts(
                                     similarity.scale * f)) for f in DEPTH_STARTS]
     starts += [(c.view, _to_full_resolution(c.sim, factor))
                for c in loc.candidates[1:1 + RUNNER_UP_STARTS]]
-    best_start: tuple[float, int, Similarity2D, Pose, Pose] | None = None
-    for t_c, sim_c in starts:
+
+    def quick_fit(start_c: tuple[int, Similarity2D]) -> tuple[float, int, Similarity2D, Pose, Pose]:
+        t_c, sim_c = start_c
         pose_c = _pose_centred(model, t_c, sim_c, camera)
         quick = refine_pose(edges, camera, pose_c, contour, fit_options.quick)
-        if best_start is None or _fit_rank(quick) > best_start[0]:
-            best_start = (_fit_rank(quick), t_c, sim_c, pose_c, quick.pose)
-        if _fit_rank(quick) >= GOOD_FIT_FRACTION:
+        return _fit_rank(quick), t_c, sim_c, pose_c, quick.pose
+
+    # Two starts at a time, one per core, taken in order until one fits
+    # well (the second of a pair is then spent in vain, but costs no time).
+    best_start: tuple[float, int, Similarity2D, Pose, Pose] | None = None
+    for first in range(0, len(starts), 2):
+        pair = each_on_both(quick_fit, starts[first:first + 2])
+        good = [fit for fit in pair if fit[0] >= GOOD_FIT_FRACTION]
+        for fit in pair[: pair.index(good[0]) + 1] if good else pair:
+            if best_start is None or fit[0] > best_start[0]:
+                best_start = fit
+        if good:
             break
     if best_start is not None:
         other = refine_pose(edges, camera, best_start[4], contour, fit_options.final)
