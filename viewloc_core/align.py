@@ -742,6 +742,7 @@ def align(
     feats: ImageFeatures,
     config: AlignConfig = AlignConfig(),
     max_matches: int = 5,
+    chance: ChanceRates | None = None,
 ) -> list[Match2D]:
     """Find model views in an image.
 
@@ -755,6 +756,10 @@ def align(
     config : AlignConfig
     max_matches : int
         Most matches returned (distinct image locations).
+    chance : ChanceRates, optional
+        :func:`viewloc_core.edge_evidence.chance_rates` of ``feats``, when
+        the caller has them already (the view search needs them too);
+        computed here when None.
 
     Returns
     -------
@@ -774,7 +779,8 @@ def align(
     # agree too loosely in view, angle and scale to win a vote (hard bench
     # set, 640x480: the first location was right in 46 of 80 images with a
     # (view, x, y, angle, scale) vote and edge coverage, 64 with this).
-    chance = chance_rates(feats)
+    if chance is None:
+        chance = chance_rates(feats)
     if len(sims) > config.max_screened:
         # A first screen on a few samples of each view's outline: the seeds
         # that miss most of them miss most of the rest too (hard bench set:

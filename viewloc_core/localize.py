@@ -1140,8 +1140,11 @@ def localize(
     if contour is not None:
         edges_future = _EDGE_POOL.submit(prepare_edges, arr, FINAL_REFINE.levels)
     config = AlignConfig()
+    # The clutter model of the image, for the alignment and the view search.
+    chance = chance_rates(feats)
     matches = align(model, index, feats, config,
-                    max_matches=max(MIN_ALIGNED_LOCATIONS, 2 * options.max_detections + 1))
+                    max_matches=max(MIN_ALIGNED_LOCATIONS, 2 * options.max_detections + 1),
+                    chance=chance)
     # The locations beyond the detections wanted are spares, in case the
     # alignment ranked a false one first; a spare with under half the best
     # location's evidence practically never wins the view search (bench,
@@ -1155,7 +1158,6 @@ def localize(
     min_score = model.default_min_score if options.min_score is None else options.min_score
     # Pass 1: per image location, the training views that explain it best.
     templates = view_templates(model)
-    chance = chance_rates(feats)
     located = []
     surface = _surface(model) if contour is not None else None
     n_candidates = _view_candidate_count(surface)
