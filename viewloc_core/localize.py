@@ -820,6 +820,7 @@ def _best_rival(
                       if f[0] >= current - NEAR_SYMMETRIC_MAX_SHORT_FIT_GAP]
     else:
         contenders = [f for f in quick_fits[:1] if f[0] > current]
+
     def full_fit(quick_pose: Pose) -> tuple[RefinementResult, float]:
         other = refine_pose(edges, camera, quick_pose, contour, fit_options.final)
         return other, shading.rank(camera, other)
@@ -856,15 +857,18 @@ def _refit_from_other_starts(
         return _fit_rank(quick), t_c, sim_c, pose_c, quick.pose
 
     # Two starts at a time, one per core, taken in order until one fits
-    # well (the second of a pair is then spent in vain, but costs no time).
+    # well (when the first of a pair does, the second was fitted in vain,
+    # meanwhile on the other core).
     best_start: tuple[float, int, Similarity2D, Pose, Pose] | None = None
+    fits_well = False
     for first in range(0, len(starts), 2):
-        pair = each_on_both(quick_fit, starts[first:first + 2])
-        good = [fit for fit in pair if fit[0] >= GOOD_FIT_FRACTION]
-        for fit in pair[: pair.index(good[0]) + 1] if good else pair:
+        for fit in each_on_both(quick_fit, starts[first:first + 2]):
             if best_start is None or fit[0] > best_start[0]:
                 best_start = fit
-        if good:
+            fits_well = fit[0] >= GOOD_FIT_FRACTION
+            if fits_well:
+                break
+        if fits_well:
             break
     if best_start is not None:
         other = refine_pose(edges, camera, best_start[4], contour, fit_options.final)
