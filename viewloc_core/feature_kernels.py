@@ -711,6 +711,84 @@ def arc_runs(
     return status, theta, span
 
 
+@njit(cache=True, nogil=True)
+def parallel_pair_parts(
+    p1: F64, p2: F64, mid: F64, length: F64, u: F64, ang: F64, i: I64, j: I64,
+    max_angle_rad: float,
+) -> tuple[I64, I64, F64, F64, F64, F64]:  # pragma: no cover - compiled
+    """The pairs of segments that overlap, nearly parallel, and their frame.
+
+    Parameters
+    ----------
+    p1, p2, mid : (S, 2) float64
+        Segment ends and midpoints, pixels.
+    length : (S,) float64
+    u : (S, 2) float64
+        Unit directions ``(p2 - p1) / length``.
+    ang : (S,) float64
+        Direction angles modulo π, radians.
+    i, j : (P,) int64
+        Candidate pairs (midpoints near enough), in the order to keep.
+    max_angle_rad : float
+        Largest angle between the two segments of a pair.
+
+    Returns
+    -------
+    i, j : (K,) int64
+        The pairs kept, in the order given.
+    dirn : (K, 2) float64
+        Their common unit direction.
+    xy : (K, 2) float64
+        Centre of their overlap, midway between the lines, pixels.
+    sep : (K,) float64
+        Distance between the two lines, pixels.
+    overlap : (K,) float64
+        Length of their overlap along ``dirn``, pixels.
+    """
+    n = len(i)
+    keep_i = np.empty(n, np.int64)
+    keep_j = np.empty(n, np.int64)
+    dirn = np.empty((n, 2))
+    xy = np.empty((n, 2))
+    sep_out = np.empty(n)
+    overlap_out = np.empty(n)
+    k = 0
+    for q in range(n):
+        a, b = i[q], j[q]
+        dang = abs(ang[a] - ang[b])
+        dang = min(dang, np.pi - dang)
+        if not dang <= max_angle_rad:
+            continue
+        # j's direction turned to agree with i's (the sign of their dot product).
+        dot = u[a, 0] * u[b, 0] + u[a, 1] * u[b, 1]
+        sign = 1.0 if dot > 0 else (-1.0 if dot < 0 else 0.0)
+        dx = u[a, 0] + u[b, 0] * sign
+        dy = u[a, 1] + u[b, 1] * sign
+        norm = np.sqrt(dx * dx + dy * dy)
+        dx /= norm
+        dy /= norm
+        sep = abs((mid[b, 0] - mid[a, 0]) * -dy + (mid[b, 1] - mid[a, 1]) * dx)
+        a1 = p1[a, 0] * dx + p1[a, 1] * dy
+        a2 = p2[a, 0] * dx + p2[a, 1] * dy
+        b1 = p1[b, 0] * dx + p1[b, 1] * dy
+        b2 = p2[b, 0] * dx + p2[b, 1] * dy
+        lo = max(min(a1, a2), min(b1, b2))
+        hi = min(max(a1, a2), max(b1, b2))
+        overlap = hi - lo
+        if not (sep >= 3.0 and overlap >= 0.5 * min(length[a], length[b])
+                and sep <= 2.0 * max(length[a], length[b])):
+            continue
+        along = (lo + hi) / 2
+        across = (mid[a, 0] + mid[b, 0]) / 2 * -dy + (mid[a, 1] + mid[b, 1]) / 2 * dx
+        keep_i[k], keep_j[k] = a, b
+        dirn[k, 0], dirn[k, 1] = dx, dy
+        xy[k, 0] = dx * along + -dy * across
+        xy[k, 1] = dy * along + dx * across
+        sep_out[k], overlap_out[k] = sep, overlap
+        k += 1
+    return keep_i[:k], keep_j[:k], dirn[:k], xy[:k], sep_out[:k], overlap_out[:k]
+
+
 def warm_up() -> None:
     """Compile (or load from numba's cache) for the types the extractor passes."""
     plane = np.zeros((1, 1, 3), np.float32)
@@ -730,3 +808,5 @@ def warm_up() -> None:
     window_bin_counts(1, 1, index, index, 1, 1)
     spread_bits(index, index, np.ones(1, np.uint16), 1, 1, 1)
     arc_runs(index, one, np.full(1, 12, np.int64), 0.9, 1.0)
+    ends = np.zeros((1, 2))
+    parallel_pair_parts(ends, ends, ends, one, ends, one, index, index, 1.0)

@@ -13,6 +13,7 @@ from viewloc_core.feature_kernels import (
     arc_runs,
     chain_pieces,
     fit_circles,
+    parallel_pair_parts,
     piece_chunks,
     scaled_int16,
     strongest_channel,
@@ -128,3 +129,65 @@ def test_arc_runs_gives_span_and_middle_of_an_arc_and_marks_closed_circles(start
     assert list(status) == [ARC, CLOSED_CIRCLE, NO_ARC]
     assert span[0] == pytest.approx(np.radians(150.0))
     assert np.mod(theta[0], 2 * np.pi) == pytest.approx(np.radians((start_deg + 75.0) % 360.0))
+
+
+def _numpy_parallel_pair_parts(p1, p2, mid, length, u, ang, i, j, max_angle_rad):
+    """The whole-array form (over all pairs at once) the kernel must reproduce bit for bit."""
+    dang = np.abs(ang[i] - ang[j])
+    dang = np.minimum(dang, np.pi - dang)
+    ok = dang <= max_angle_rad
+    i, j = i[ok], j[ok]
+    ui, uj = u[i], u[j].copy()
+    uj *= np.sign(ui[:, 0] * uj[:, 0] + ui[:, 1] * uj[:, 1])[:, None]
+    dirn = ui + uj
+    dirn /= np.linalg.norm(dirn, axis=1, keepdims=True)
+    dx, dy = dirn[:, 0], dirn[:, 1]
+    normal = np.stack([-dy, dx], axis=1)
+    dm = mid[j] - mid[i]
+    sep = np.abs(dm[:, 0] * -dy + dm[:, 1] * dx)
+
+    def along(p, k):
+        return p[k, 0] * dx + p[k, 1] * dy
+
+    a1, a2, b1, b2 = along(p1, i), along(p2, i), along(p1, j), along(p2, j)
+    lo = np.maximum(np.minimum(a1, a2), np.minimum(b1, b2))
+    hi = np.minimum(np.maximum(a1, a2), np.maximum(b1, b2))
+    overlap = hi - lo
+    ok = ((sep >= 3.0) & (overlap >= 0.5 * np.minimum(length[i], length[j]))
+          & (sep <= 2.0 * np.maximum(length[i], length[j])))
+    across = ((mid[i] + mid[j]) / 2 * normal).sum(axis=1)
+    xy = dirn * ((lo + hi) / 2)[:, None] + normal * across[:, None]
+    return i[ok], j[ok], dirn[ok], xy[ok], sep[ok], overlap[ok]
+
+
+def test_parallel_pair_parts_equals_the_array_form_and_finds_a_bar():
+    rng = np.random.default_rng(5)
+    p1 = rng.uniform(0, 200, (60, 2))
+    # Many nearly parallel segments, some exactly so, some crossing.
+    turn = rng.choice([0.0, 0.02, 0.3, np.pi], 60) + rng.normal(0, 0.05, 60)
+    p2 = p1 + rng.uniform(10, 60, 60)[:, None] * np.column_stack([np.cos(turn), np.sin(turn)])
+    mid = (p1 + p2) / 2
+    length = np.linalg.norm(p2 - p1, axis=1)
+    u = (p2 - p1) / length[:, None]
+    ang = np.mod(np.arctan2(u[:, 1], u[:, 0]), np.pi)
+    i, j = np.triu_indices(60, 1)
+    i, j = np.ascontiguousarray(i, np.int64), np.ascontiguousarray(j, np.int64)
+    got = parallel_pair_parts(p1, p2, mid, length, u, ang, i, j, np.radians(10.0))
+    expected = _numpy_parallel_pair_parts(p1, p2, mid, length, u, ang, i, j, np.radians(10.0))
+    assert len(got[0]) > 20
+    for g, e in zip(got, expected, strict=True):
+        np.testing.assert_array_equal(g, e)
+    # The two sides of a bar 8 px wide, one drawn backwards: their centre
+    # line, 8 px apart, overlapping over the shorter side.
+    p1 = np.array([[10.0, 20.0], [45.0, 28.0]])
+    p2 = np.array([[50.0, 20.0], [15.0, 28.0]])
+    mid = (p1 + p2) / 2
+    length = np.linalg.norm(p2 - p1, axis=1)
+    u = (p2 - p1) / length[:, None]
+    ang = np.mod(np.arctan2(u[:, 1], u[:, 0]), np.pi)
+    i, j, dirn, xy, sep, overlap = parallel_pair_parts(
+        p1, p2, mid, length, u, ang, np.array([0]), np.array([1]), np.radians(10.0))
+    assert i.tolist() == [0] and j.tolist() == [1]
+    np.testing.assert_allclose(np.abs(dirn[0]), [1.0, 0.0])
+    np.testing.assert_allclose(xy[0], [30.0, 24.0])
+    assert sep[0] == pytest.approx(8.0) and overlap[0] == pytest.approx(30.0)
