@@ -711,7 +711,9 @@ def arc_runs(
     return status, theta, span
 
 
-@njit(cache=True, nogil=True)
+# numpy's error model: a zero direction divides to NaN as in the array
+# form, instead of raising.
+@njit(cache=True, nogil=True, error_model="numpy")
 def parallel_pair_parts(
     p1: F64, p2: F64, mid: F64, length: F64, u: F64, ang: F64, i: I64, j: I64,
     max_angle_rad: float,

@@ -191,3 +191,11 @@ def test_parallel_pair_parts_equals_the_array_form_and_finds_a_bar():
     np.testing.assert_allclose(np.abs(dirn[0]), [1.0, 0.0])
     np.testing.assert_allclose(xy[0], [30.0, 24.0])
     assert sep[0] == pytest.approx(8.0) and overlap[0] == pytest.approx(30.0)
+
+
+def test_warm_up_compiles_every_kernel_on_its_placeholder_inputs():
+    """setup.sh compiles the kernels through warm_up: its placeholder inputs
+    (zeros, empty) must not raise in any of them."""
+    from viewloc_core.feature_kernels import warm_up
+
+    warm_up()
