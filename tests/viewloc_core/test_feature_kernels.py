@@ -193,9 +193,10 @@ def test_parallel_pair_parts_equals_the_array_form_and_finds_a_bar():
     assert sep[0] == pytest.approx(8.0) and overlap[0] == pytest.approx(30.0)
 
 
-def test_warm_up_compiles_every_kernel_on_its_placeholder_inputs():
-    """setup.sh compiles the kernels through warm_up: its placeholder inputs
-    (zeros, empty) must not raise in any of them."""
+def test_warm_up_compiles_every_kernel_on_all_zero_inputs():
+    """setup.sh compiles the kernels through warm_up, which calls each once
+    on one-element arrays of zeros: none of them may raise there (a zero
+    direction divided by its zero length did, before numpy's error model)."""
     from viewloc_core.feature_kernels import warm_up
 
     warm_up()
