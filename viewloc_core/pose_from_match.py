@@ -30,6 +30,7 @@ contour refinement (:mod:`viewloc_core.refine`) removes.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -45,17 +46,35 @@ Array = NDArray[np.float64]
 _Z = np.array([0.0, 0.0, 1.0])
 
 
-def _check_inputs(R_view_m2c: NDArray[np.floating], d0_mm: float, f_train_px: float) -> Array:
-    R_v = np.asarray(R_view_m2c, dtype=np.float64)
-    if R_v.shape != (3, 3) or not np.all(np.isfinite(R_v)):
+@functools.lru_cache(maxsize=8192)
+def _checked_rotation(raw: bytes) -> Array:
+    """The orthonormalized rotation of a (3, 3) float64 matrix given by its
+    bytes, checked; read-only.
+
+    Cached: the poses of one localization come from a few dozen of a model's
+    training views, each checked and orthonormalized (an SVD) once rather
+    than in every call (a fifth of the pose's cost).
+    """
+    R_v = np.frombuffer(raw, np.float64).reshape(3, 3)
+    if not np.all(np.isfinite(R_v)):
         raise InvalidInputError("R_view_m2c must be a finite (3, 3) rotation", "R_view_m2c")
     if abs(np.linalg.det(R_v) - 1.0) > 1e-3 or np.abs(R_v @ R_v.T - np.eye(3)).max() > 1e-3:
         raise InvalidInputError("R_view_m2c is not a rotation matrix", "R_view_m2c")
+    R = orthonormalize(R_v)
+    R.flags.writeable = False
+    return R
+
+
+def _check_inputs(R_view_m2c: NDArray[np.floating], d0_mm: float, f_train_px: float) -> Array:
+    R_v = np.asarray(R_view_m2c, dtype=np.float64)
+    if R_v.shape != (3, 3):
+        raise InvalidInputError("R_view_m2c must be a finite (3, 3) rotation", "R_view_m2c")
+    R = _checked_rotation(np.ascontiguousarray(R_v).tobytes())
     if not (math.isfinite(d0_mm) and d0_mm > 0):
         raise InvalidInputError(f"d0_mm must be positive, got {d0_mm}", "d0_mm")
     if not (math.isfinite(f_train_px) and f_train_px > 0):
         raise InvalidInputError(f"f_train_px must be positive, got {f_train_px}", "f_train_px")
-    return orthonormalize(R_v)
+    return R
 
 
 _ROT90 = np.array([[0.0, -1.0], [1.0, 0.0]])
@@ -87,13 +106,22 @@ def _similarity_fit_operator(J: Array, spread: Array | None) -> Array:
     ``tr((S - J S_v) C (S - J S_v)^T)``, which is linear in both. ``C = I``
     (isotropic features) keeps exactly the conformal part of ``J``.
     """
-    C = np.eye(2) if spread is None else spread
+    P = _ISOTROPIC_PROJECTION if spread is None else _conformal_projection(spread)
+    G = np.column_stack([J.reshape(4), (J @ _ROT90).reshape(4)])
+    return P @ G
+
+
+def _conformal_projection(C: Array) -> Array:
+    """(2, 4) weighted least-squares projection of a row-major (2, 2) map onto
+    the similarities (a, b), for points with second moment ``C``."""
     W = np.zeros((4, 4))
     W[:2, :2] = C
     W[2:, 2:] = C
-    P = np.linalg.solve(_SIM_BASIS.T @ W @ _SIM_BASIS, _SIM_BASIS.T @ W)
-    G = np.column_stack([J.reshape(4), (J @ _ROT90).reshape(4)])
-    return P @ G
+    return np.linalg.solve(_SIM_BASIS.T @ W @ _SIM_BASIS, _SIM_BASIS.T @ W)
+
+
+#: The projection for isotropic features (C = I), the usual case: computed once.
+_ISOTROPIC_PROJECTION = _conformal_projection(np.eye(2))
 
 
 def _check_spread(spread: NDArray[np.floating] | None) -> Array | None:

@@ -12,7 +12,11 @@ from viewloc_core.camera import Camera
 from viewloc_core.detection import Similarity2D
 from viewloc_core.errors import InvalidInputError
 from viewloc_core.pose import Pose, rot_z, rotation_angle_deg, rotation_between
-from viewloc_core.pose_from_match import pose_from_similarity, similarity_from_pose
+from viewloc_core.pose_from_match import (
+    _checked_rotation,
+    pose_from_similarity,
+    similarity_from_pose,
+)
 from viewloc_core.view_sphere import direction_from_angles, view_rotation
 
 D0 = 600.0
@@ -208,3 +212,21 @@ def test_bad_input_raises(kwargs, field):
     with pytest.raises(InvalidInputError) as info:
         pose_from_similarity(sim, camera=SCENE, **args)
     assert info.value.field == field
+
+
+@pytest.mark.parametrize(
+    "R_bad", [np.diag([1.0, 1.0, -1.0]), np.full((3, 3), np.nan), 2.0 * np.eye(3)])
+def test_a_bad_rotation_is_refused_every_time_and_a_good_one_is_orthonormalized(R_bad):
+    # Checked rotations are cached by their bytes: a refusal is not cached,
+    # and a cached rotation cannot be changed by a caller.
+    sim = Similarity2D(320.0, 240.0, 0.0, 1.0)
+    for _ in range(2):
+        with pytest.raises(InvalidInputError) as info:
+            pose_from_similarity(sim, R_bad, D0, F_TRAIN, SCENE)
+        assert info.value.field == "R_view_m2c"
+    nearly = view_rotation(direction_from_angles(30.0, 60.0)) + 1e-5
+    first = pose_from_similarity(sim, nearly, D0, F_TRAIN, SCENE)
+    assert np.allclose(first.R_m2c.T @ first.R_m2c, np.eye(3), atol=1e-12)
+    assert np.array_equal(pose_from_similarity(sim, nearly, D0, F_TRAIN, SCENE).R_m2c,
+                          first.R_m2c)
+    assert not _checked_rotation(np.ascontiguousarray(nearly).tobytes()).flags.writeable
