@@ -135,7 +135,8 @@ def _ring_pixels(camera: Camera, pose: Pose, samples: SurfaceSamples,
 
 
 def figure_ground_contrast(image: NDArray[np.generic], camera: Camera, pose: Pose,
-                           samples: SurfaceSamples) -> float | None:
+                           samples: SurfaceSamples,
+                           visible_uv: NDArray[np.float64] | None = None) -> float | None:
     """How different the colours inside the part's outline are from those around it.
 
     Parameters
@@ -147,6 +148,10 @@ def figure_ground_contrast(image: NDArray[np.generic], camera: Camera, pose: Pos
     pose : Pose
         Object -> camera, the frame of ``samples``.
     samples : SurfaceSamples
+    visible_uv : (M, 2) array or None
+        Image positions of the samples seen at ``pose``
+        (:func:`viewloc_core.shading.visible_samples`) when the caller has
+        them already; computed here when None.
 
     Returns
     -------
@@ -162,7 +167,7 @@ def figure_ground_contrast(image: NDArray[np.generic], camera: Camera, pose: Pos
     if arr.ndim != 3 or arr.shape[2] < 3:
         return None
     rgb = arr[..., :3]
-    uv, _ = visible_samples(samples, camera, pose)
+    uv = visible_samples(samples, camera, pose)[0] if visible_uv is None else visible_uv
     if len(uv) < MIN_PIXELS:
         return None
     height, width = rgb.shape[:2]

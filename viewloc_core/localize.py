@@ -118,7 +118,8 @@ FINAL_REFINE = RefineOptions(polish_px=4)
 #: AR_MSPD mean 0.802 -> 0.816; images without the part given a detection
 #: 46 -> 49 of 60. LM-O ape, can and cat: seed 0 0.144/0.204 -> 0.142/0.206,
 #: seed 1 0.146/0.209 -> 0.151/0.208. About 1-2 ms per image.
-QUICK_REFINE = RefineOptions(iterations=(3, 3), measure_chance=False, point_stride=2)
+QUICK_REFINE = RefineOptions(iterations=(3, 3), measure_chance=False,
+                             measure_uncertainty=False, point_stride=2)
 
 #: The short fit of a near-symmetric twin of a fit (see ``_other_sides``):
 #: the twin turns about the part's centroid, whose image stays where the
@@ -597,11 +598,13 @@ class _Shading:
         :data:`SHADING_WEIGHT` (0 when the part shows too little of itself)
         and the colour agreement weighted by :data:`COLOUR_WEIGHT` (a view
         fitted beside the part covers less of its colours)."""
-        agreement = shading_agreement(self.image, camera, result.pose, self.samples)
+        # Both cues read the same visible samples: projected once.
+        visible = visible_samples(self.samples, camera, result.pose)
+        agreement = shading_agreement(self.image, camera, result.pose, self.samples, visible)
         rank = _fit_rank(result) + SHADING_WEIGHT * (agreement or 0.0)
         if self.colour is not None:
-            rank += COLOUR_WEIGHT * (self.colour.agreement(camera, result.pose, self.samples)
-                                     or 0.0)
+            rank += COLOUR_WEIGHT * (self.colour.agreement(camera, result.pose, self.samples,
+                                                           visible[0]) or 0.0)
         return rank
 
 
@@ -664,10 +667,13 @@ class _ColourScene:
                                  for a in COLOUR_SEED_ANGLES_DEG], np.float64))
         return out
 
-    def agreement(self, camera: Camera, pose: Pose, samples: SurfaceSamples) -> float | None:
+    def agreement(self, camera: Camera, pose: Pose, samples: SurfaceSamples,
+                  visible_uv: NDArray[np.float64] | None = None) -> float | None:
         """Mean P(part | colour) under the surface samples the camera sees at
-        ``pose`` (the part's centred frame); None when none is seen."""
-        uv, _ = visible_samples(samples, camera, pose)
+        ``pose`` (the part's centred frame); None when none is seen.
+        ``visible_uv``: their image positions when the caller has them
+        already (:func:`viewloc_core.shading.visible_samples`)."""
+        uv = visible_samples(samples, camera, pose)[0] if visible_uv is None else visible_uv
         if not len(uv):
             return None
         return part_colour.agreement(self.posterior, (uv + 0.5) * self.factor - 0.5)
@@ -934,10 +940,15 @@ def _final_detection(
     expected_colour_agreement = None
     figure_ground = None
     if shading is not None:
+        # With a colour cue, the contrast and the agreement read the same
+        # visible samples: projected once.
+        visible_uv = (None if shading.colour is None
+                      else visible_samples(shading.samples, camera, pose_centred)[0])
         figure_ground = figure_ground_contrast(shading.image, camera, pose_centred,
-                                               shading.samples)
+                                               shading.samples, visible_uv)
         if shading.colour is not None:
-            colour_agreement = shading.colour.agreement(camera, pose_centred, shading.samples)
+            colour_agreement = shading.colour.agreement(camera, pose_centred, shading.samples,
+                                                        visible_uv)
             expected_colour_agreement = shading.colour.expected_agreement
     # The model was learned with the bounding-box centre as origin.
     pose = Pose(pose_centred.R_m2c,

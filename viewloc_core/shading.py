@@ -159,7 +159,8 @@ def visible_samples(samples: SurfaceSamples, camera: Camera, pose: Pose) -> tupl
 
 
 def shading_agreement(image: NDArray[np.generic], camera: Camera, pose: Pose,
-                      samples: SurfaceSamples) -> float | None:
+                      samples: SurfaceSamples,
+                      visible: tuple[F64, F64] | None = None) -> float | None:
     """How well the surface at ``pose`` explains the image's intensities.
 
     Parameters
@@ -171,6 +172,10 @@ def shading_agreement(image: NDArray[np.generic], camera: Camera, pose: Pose,
     pose : Pose
         Object -> camera, the frame of ``samples``.
     samples : SurfaceSamples
+    visible : (uv (M, 2), normals (M, 3)) or None
+        :func:`visible_samples` of ``samples`` at ``pose`` when the caller
+        has them already (a rival fit is ranked by its shading and by its
+        colours under the same samples); computed here when None.
 
     Returns
     -------
@@ -180,7 +185,7 @@ def shading_agreement(image: NDArray[np.generic], camera: Camera, pose: Pose,
         fewer than :data:`MIN_VISIBLE` samples are seen or the part looks
         uniform (nothing to explain).
     """
-    uv, normals = visible_samples(samples, camera, pose)
+    uv, normals = visible_samples(samples, camera, pose) if visible is None else visible
     if len(uv) < MIN_VISIBLE:
         return None
     explained = shading_kernels.explained_variance(intensity_at(image, uv), normals,

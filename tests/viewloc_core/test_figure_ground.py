@@ -8,7 +8,7 @@ from viewloc_core.camera import Camera
 from viewloc_core.figure_ground import figure_ground_contrast
 from viewloc_core.pose import Pose
 from viewloc_core.render import Light, Renderer, prepare
-from viewloc_core.shading import surface_samples
+from viewloc_core.shading import surface_samples, visible_samples
 
 CAM = Camera(600.0, 600.0, 319.5, 239.5, 640, 480)
 LIGHTS = (Light("directional", direction_cam=(0.4, 0.5, 1.0), intensity=3.0),
@@ -50,6 +50,14 @@ def test_the_part_stands_out_and_its_shadow_does_not(scene):
     # A pose where there is only ground encloses the ground's own colours.
     elsewhere = Pose(pose.R_m2c, pose.t_m2c + np.array([-120.0, 60.0, 0.0]))
     assert figure_ground_contrast(with_part, CAM, elsewhere, samples) < 0.05
+
+
+def test_visible_samples_given_by_the_caller_give_the_same_contrast(scene):
+    samples, pose, mask, ground, part = scene
+    with_part = _with_part(ground, mask, part)
+    uv = visible_samples(samples, CAM, pose)[0]
+    assert figure_ground_contrast(with_part, CAM, pose, samples, uv) == figure_ground_contrast(
+        with_part, CAM, pose, samples)
 
 
 def test_contrast_is_the_same_in_16_bit_and_brighter_light(scene):

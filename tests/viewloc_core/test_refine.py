@@ -328,6 +328,25 @@ def test_a_quick_fit_ends_where_the_full_fit_does(bracket_contour_scene, seed):
     assert abs(quick.inlier_fraction - full.inlier_fraction) < 0.03
 
 
+def test_a_fit_without_uncertainty_is_the_same_fit_with_infinite_deviations(
+        bracket_contour_scene):
+    renderer, prepared, model = bracket_contour_scene
+    rng = np.random.default_rng(5)
+    truth = Pose(Rotation.random(random_state=5).as_matrix(), np.array([20.0, -10.0, 600.0]))
+    out = renderer.render(prepared, CAM, truth)
+    edges = prepare_edges(np.where(out.mask[..., None], out.color, _clutter(rng)), 2)
+    start = _perturbed(truth, rng, 3.0, 0.02)
+    measured = refine_pose(edges, CAM, start, model, RefineOptions())
+    skipped = refine_pose(edges, CAM, start, model, RefineOptions(measure_uncertainty=False))
+    assert np.all(np.isfinite(measured.pose_std))
+    assert np.all(np.isinf(skipped.pose_std)) and np.all(np.isinf(skipped.covariance_6x6))
+    assert np.array_equal(skipped.pose.matrix, measured.pose.matrix)
+    assert (skipped.converged, skipped.iterations, skipped.mean_residual_px,
+            skipped.inlier_fraction, skipped.chance_fraction, skipped.support) == (
+        measured.converged, measured.iterations, measured.mean_residual_px,
+        measured.inlier_fraction, measured.chance_fraction, measured.support)
+
+
 def test_the_parts_own_edges_weigh_less_than_its_outline(renderer):
     """A flat-lit part shows its outline and none of its creases or inner
     contours: the inlier fraction counts the missing ones at

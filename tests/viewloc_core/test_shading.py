@@ -75,6 +75,14 @@ def test_the_true_pose_explains_the_shading_better_than_the_other_side(blob_rend
     assert float(np.median(margins)) > 0.05
 
 
+def test_visible_samples_given_by_the_caller_give_the_same_agreement(blob_renders):
+    samples, scenes = blob_renders
+    for grey, truth in scenes:
+        visible = visible_samples(samples, CAM, truth)
+        assert shading_agreement(grey, CAM, truth, samples, visible) == shading_agreement(
+            grey, CAM, truth, samples)
+
+
 @settings(max_examples=25, deadline=None)
 @given(gain=st.floats(0.05, 20.0), offset=st.floats(-500.0, 500.0))
 def test_agreement_ignores_brightness_and_contrast(blob_renders, gain, offset):
