@@ -940,16 +940,16 @@ def _final_detection(
     expected_colour_agreement = None
     figure_ground = None
     if shading is not None:
-        # With a colour cue, the contrast and the agreement read the same
-        # visible samples: projected once.
-        visible_uv = (None if shading.colour is None
-                      else visible_samples(shading.samples, camera, pose_centred)[0])
-        figure_ground = figure_ground_contrast(shading.image, camera, pose_centred,
-                                               shading.samples, visible_uv)
+        visible_uv = None
         if shading.colour is not None:
+            # The colour agreement and the contrast read the same visible
+            # samples: projected once.
+            visible_uv = visible_samples(shading.samples, camera, pose_centred)[0]
             colour_agreement = shading.colour.agreement(camera, pose_centred, shading.samples,
                                                         visible_uv)
             expected_colour_agreement = shading.colour.expected_agreement
+        figure_ground = figure_ground_contrast(shading.image, camera, pose_centred,
+                                               shading.samples, visible_uv)
     # The model was learned with the bounding-box centre as origin.
     pose = Pose(pose_centred.R_m2c,
                 pose_centred.t_m2c - pose_centred.R_m2c @ model.origin_offset_mm)
