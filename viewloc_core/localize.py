@@ -28,6 +28,7 @@ from viewloc_core import (
     normal_search,
     pairing,
     part_colour,
+    refine_kernels,
     sample_evidence,
     seeding,
     shading_kernels,
@@ -394,6 +395,7 @@ def warm_up() -> None:
     normal_search.warm_up()
     contour_kernels.warm_up()
     gauss_newton_kernel.warm_up()
+    refine_kernels.warm_up()
     shading_kernels.warm_up()
     shift_search.warm_up()
 

@@ -20,8 +20,10 @@ The paper's "scene-based tracking", done the way edge-based trackers do it
    narrower search on the finest level (``RefineOptions.polish_px``).
 
 Steps 1-4 of one pyramid level run as one compiled call
-(:func:`viewloc_core.gauss_newton_kernel.gauss_newton_level`); this module
-prepares the pyramid, shifts the start, and measures the final pose.
+(:func:`viewloc_core.gauss_newton_kernel.gauss_newton_level`), and so do
+the shift of the start and the measures of the final pose
+(:mod:`viewloc_core.refine_kernels`); this module prepares the pyramid and
+strings the calls together.
 
 Colour images: the gradient is taken per channel and, per pixel, the channel
 with the largest gradient magnitude is kept (an edge between two colours of
@@ -44,19 +46,23 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial import cKDTree
 
 from viewloc_core.both_cores import each_on_both
 from viewloc_core.camera import Camera
-from viewloc_core.contour_kernels import edge_residuals_of_points, project_contour
+from viewloc_core.contour_kernels import project_contour
 from viewloc_core.contour_model import KIND_OCCLUDING, ContourModel
 from viewloc_core.errors import InvalidImageError, InvalidInputError
 from viewloc_core.gauss_newton_kernel import gauss_newton_level
 from viewloc_core.gradient import image_gradient
 from viewloc_core.normal_search import search_normals
 from viewloc_core.pose import Pose
-from viewloc_core.robust import tukey_weights
-from viewloc_core.shift_search import shift_grid, shift_scores
+from viewloc_core.refine_kernels import (
+    MIN_INLIERS,
+    contour_neighbours,
+    fit_measures,
+    inflation_of,
+    shifted_translation,
+)
 
 Array = NDArray[np.float64]
 
@@ -354,13 +360,6 @@ class _Projection:
     weight: Array  # (N,) weight in the inlier fraction (RefineOptions.self_edge_weight)
 
 
-@dataclass(frozen=True, slots=True)
-class _Matches:
-    J: Array  # (M, 6) residual Jacobian, full-res pixels per (rad, mm)
-    r: Array  # (M,) residuals, full-res pixels
-    point: NDArray[np.int64]  # (M,) index of each residual's projected contour point
-
-
 class _Projector:
     """Projects the contour of the view nearest to a pose; one per refinement.
 
@@ -511,22 +510,6 @@ def edges_along_normals(
                           _search_prior(search))
 
 
-def _matches(
-    proj: _Projection,
-    pose: Pose,
-    camera: Camera,
-    edges: EdgePyramid,
-    level: int,
-    search: int,
-    options: RefineOptions,
-) -> _Matches:
-    J, r, point = edge_residuals_of_points(
-        edges.gradients[level], proj.uv, proj.n2, proj.X, pose.t_m2c, camera.fx, camera.fy,
-        level, search, options.min_gradient, math.cos(math.radians(options.max_angle_deg)),
-        _search_prior(search))
-    return _Matches(J, r, point)
-
-
 @dataclass(frozen=True, slots=True)
 class _Step:
     """Size of one Gauss-Newton update (infinite before the first)."""
@@ -632,84 +615,17 @@ def _align_shift(
     start is shifted by more than half their spacing. A small exhaustive
     search over 2D shifts of the whole projected contour (sum of the image
     gradient along each contour normal, as in chamfer matching) is immune to
-    that and costs about 0.1 ms (:mod:`viewloc_core.shift_search`).
+    that and costs about 0.1 ms (:func:`viewloc_core.refine_kernels.shifted_translation`).
     """
     if opts.shift_search_px <= 0:
         return pose
-    proj = projector.project(pose, margin_px=1.0)
-    if proj is None:
-        return pose
-    f = 2.0**level
-    uv_l = (proj.uv + 0.5) / f - 0.5
-    rad = max(1, int(math.ceil(opts.shift_search_px / f)))
-    shifts, dist2 = shift_grid(rad)
-    score = shift_scores(edges.gradients[level], uv_l, proj.n2, rad, 4.0 * opts.min_gradient)
-    # Prefer the smaller shift among (near) ties.
-    best = int(np.argmax(score - 1e-6 * dist2))
-    if score[best] <= score[len(score) // 2] * 1.02:
-        return pose
-    shift_px = shifts[best].astype(np.float64) * f
-    z = float(pose.t_m2c[2])
-    cam = projector.camera
-    delta_t = np.array([shift_px[0] * z / cam.fx, shift_px[1] * z / cam.fy, 0.0])
-    return Pose(pose.R_m2c, pose.t_m2c + delta_t)
-
-
-def _final(
-    pose: Pose,
-    camera: Camera,
-    projector: _Projector,
-    edges: EdgePyramid,
-    opts: RefineOptions,
-    iterations: int,
-    last: _Step,
-) -> RefinementResult:
-    """Inliers, residuals and covariance at the final pose (finest level)."""
-    search = max(2, int(math.ceil(opts.inlier_px)) + 1)
-    proj = projector.project(pose, margin_px=1.0)
-    if proj is None:
-        return RefinementResult(pose, False, iterations, math.inf, 0.0)
-    m = _matches(proj, pose, camera, edges, 0, search, opts)
-    inl = np.abs(m.r) <= opts.inlier_px
-    n_inliers = int(np.count_nonzero(inl))
-    # Weighted counts: the part's own edges weigh less than its outline.
-    inliers_weighted = float(proj.weight[m.point[inl]].sum())
-    projected_weighted = float(proj.weight.sum())
-    fraction = inliers_weighted / projected_weighted if projected_weighted > 0 else 0.0
-    chance, support = 1.0, -math.inf
-    inflation = 1.0
-    if opts.measure_chance:
-        neighbour, spacing_px = nearest_neighbours(proj.uv)
-        chance = _chance_fraction(proj, camera, edges, search, opts)
-        support = _support(inliers_weighted, projected_weighted, chance, spacing_px)
-        if n_inliers >= 6:
-            # The outliers' residuals are left out.
-            residual_of_point = np.full(len(proj.uv), np.nan)
-            residual_of_point[m.point[inl]] = m.r[inl]
-            inflation = correlation_inflation(residual_of_point, neighbour)
-    if n_inliers < 6:
-        return RefinementResult(pose, False, iterations, math.inf, fraction,
-                                chance_fraction=chance, support=support)
-    r = m.r[inl]
-    converged = last.settled(opts, 0, CONVERGED_FACTOR) and fraction >= 0.3
-    if not opts.measure_uncertainty:
-        return RefinementResult(pose, bool(converged), iterations, float(np.abs(r).mean()),
-                                fraction, chance_fraction=chance, support=support)
-    J = m.J[inl]
-    w, _ = tukey_weights(r, min_scale=0.25)
-    H = J.T @ (J * w[:, None])
-    dof = max(float(w.sum()) - 6.0, 1.0)
-    sigma2 = float((w * r * r).sum()) / dof
-    try:
-        cov = inflation * sigma2 * np.linalg.inv(H)
-    except np.linalg.LinAlgError:
-        cov = np.full((6, 6), np.inf)
-    diag = np.diag(cov)
-    std = np.asarray(np.sqrt(np.where(diag >= 0, diag, np.inf)), dtype=np.float64)
-    std[:3] = np.degrees(std[:3])
-    return RefinementResult(pose, bool(converged), iterations,
-                            float(np.abs(r).mean()), fraction,
-                            np.asarray(cov, dtype=np.float64), std, chance, support)
+    model = projector.model
+    t = shifted_translation(
+        edges.gradients[level], model.points_obj, model.normals_obj, model.counts,
+        model.directions, projector.stride, pose.R_m2c, pose.t_m2c, projector.intrinsics,
+        projector.dist, projector.distorted, projector.window(1.0), level,
+        float(opts.shift_search_px), float(opts.min_gradient))
+    return Pose(pose.R_m2c, t)
 
 
 #: Sideways shifts (full-resolution px) at which the chance rate is measured:
@@ -722,40 +638,52 @@ _CHANCE_SHIFTS_PX = np.array([[9.0, 4.0], [-4.0, 9.0], [-9.0, -4.0], [4.0, -9.0]
 _Q_TRUE = 0.85
 
 
-def _chance_fraction(
-    proj: _Projection, camera: Camera, edges: EdgePyramid, search: int, opts: RefineOptions,
-) -> float:
-    """Inlier fraction (weighted as the fit's own) of the contour shifted to
-    nearby wrong places."""
-    if len(proj.uv) < 2:
-        return 1.0
-    uv, n2 = proj.uv, proj.n2
-    cos_max = math.cos(math.radians(opts.max_angle_deg))
-    rates = []
-    for shift in _CHANCE_SHIFTS_PX:
-        uv_s = uv + shift
-        ok = ((uv_s[:, 0] >= 1) & (uv_s[:, 0] <= camera.width - 2)
-              & (uv_s[:, 1] >= 1) & (uv_s[:, 1] <= camera.height - 2))
-        if np.count_nonzero(ok) < 6:
-            continue
-        found, offset = edges_along_normals(edges.gradients[0], uv_s[ok], n2[ok], search,
-                                            opts.min_gradient, cos_max)
-        weight = proj.weight[ok]
-        total = float(weight.sum())
-        if total > 0:
-            hit = found & (np.abs(offset) <= opts.inlier_px)
-            rates.append(float(weight[hit].sum()) / total)
-    return float(np.mean(rates)) if rates else 1.0
-
-
-#: Neighbours whose residuals are compared lie within this many times the
-#: median distance between neighbouring points (farther ones are across a
-#: gap of the contour, or on another part of it).
-_NEIGHBOUR_SPACINGS = 2.0
-
-#: The lag-one correlation is capped here (variance inflated at most 39-fold):
-#: above it, the few points of a short contour say too little to tell.
-_MAX_RESIDUAL_CORRELATION = 0.95
+def _final(
+    pose: Pose,
+    camera: Camera,
+    projector: _Projector,
+    edges: EdgePyramid,
+    opts: RefineOptions,
+    iterations: int,
+    last: _Step,
+) -> RefinementResult:
+    """Inliers, residuals and covariance at the final pose (finest level),
+    measured in one compiled call (:func:`viewloc_core.refine_kernels.fit_measures`)."""
+    search = max(2, int(math.ceil(opts.inlier_px)) + 1)
+    model = projector.model
+    projected, n_inliers, values, H = fit_measures(
+        edges.gradients[0], model.points_obj, model.normals_obj, model.kinds, model.counts,
+        model.directions, projector.stride, float(projector.self_edge_weight), pose.R_m2c,
+        pose.t_m2c, projector.intrinsics, projector.dist, projector.distorted,
+        projector.window(1.0), camera.width, camera.height, search, float(opts.min_gradient),
+        math.cos(math.radians(opts.max_angle_deg)), _search_prior(search),
+        float(opts.inlier_px), _CHANCE_SHIFTS_PX, opts.measure_chance,
+        opts.measure_uncertainty)
+    if projected == 0:
+        return RefinementResult(pose, False, iterations, math.inf, 0.0)
+    inliers_weighted, projected_weighted, mean_residual, chance, spacing_px, inflation, sigma2 = (
+        float(v) for v in values[:7])
+    # Weighted counts: the part's own edges weigh less than its outline.
+    fraction = inliers_weighted / projected_weighted if projected_weighted > 0 else 0.0
+    support = -math.inf
+    if opts.measure_chance:
+        support = _support(inliers_weighted, projected_weighted, chance, spacing_px)
+    if n_inliers < MIN_INLIERS:
+        return RefinementResult(pose, False, iterations, math.inf, fraction,
+                                chance_fraction=chance, support=support)
+    converged = last.settled(opts, 0, CONVERGED_FACTOR) and fraction >= 0.3
+    if not opts.measure_uncertainty:
+        return RefinementResult(pose, bool(converged), iterations, mean_residual,
+                                fraction, chance_fraction=chance, support=support)
+    try:
+        cov = inflation * sigma2 * np.linalg.inv(H)
+    except np.linalg.LinAlgError:
+        cov = np.full((6, 6), np.inf)
+    diag = np.diag(cov)
+    std = np.asarray(np.sqrt(np.where(diag >= 0, diag, np.inf)), dtype=np.float64)
+    std[:3] = np.degrees(std[:3])
+    return RefinementResult(pose, bool(converged), iterations, mean_residual, fraction,
+                            np.asarray(cov, dtype=np.float64), std, chance, support)
 
 
 def nearest_neighbours(uv: NDArray[np.floating]) -> tuple[NDArray[np.int64], float]:
@@ -773,19 +701,15 @@ def nearest_neighbours(uv: NDArray[np.floating]) -> tuple[NDArray[np.int64], flo
     -------
     neighbour : (N,) int64
         Index of each point's nearest other point, -1 when it lies farther
-        than :data:`_NEIGHBOUR_SPACINGS` times the spacing (across a gap of
-        the contour, or on another part of it) or there is none.
+        than :data:`~viewloc_core.refine_kernels.NEIGHBOUR_SPACINGS` times
+        the spacing (across a gap of the contour, or on another part of it)
+        or there is none.
     spacing_px : float
         Median distance from a point to its nearest other point (0 for fewer
         than two points).
     """
-    uv = np.asarray(uv, np.float64)
-    if len(uv) < 2:
-        return np.full(len(uv), -1, np.int64), 0.0
-    dist, nearest = cKDTree(uv).query(uv, k=2)
-    spacing = float(np.median(dist[:, 1]))
-    neighbour = np.where(dist[:, 1] <= _NEIGHBOUR_SPACINGS * spacing, nearest[:, 1], -1)
-    return neighbour.astype(np.int64), spacing
+    neighbour, spacing = contour_neighbours(np.ascontiguousarray(uv, np.float64))
+    return neighbour, float(spacing)
 
 
 def correlation_inflation(residual_of_point: NDArray[np.floating],
@@ -816,17 +740,11 @@ def correlation_inflation(residual_of_point: NDArray[np.floating],
     -------
     float
         At least 1 (negative and unmeasurable correlations count as 0), at
-        most ``(1 + c) / (1 - c)`` with c = :data:`_MAX_RESIDUAL_CORRELATION`.
+        most ``(1 + c) / (1 - c)`` with c =
+        :data:`~viewloc_core.refine_kernels.MAX_RESIDUAL_CORRELATION`.
     """
-    r = np.asarray(residual_of_point, np.float64)
-    nb = np.asarray(neighbour, np.int64)
-    ok = (nb >= 0) & np.isfinite(r)
-    ok[ok] = np.isfinite(r[nb[ok]])
-    a, b = r[ok], r[nb[ok]]
-    if len(a) < 6 or float(a.std()) <= 0.0 or float(b.std()) <= 0.0:
-        return 1.0
-    rho = float(np.clip(np.corrcoef(a, b)[0, 1], 0.0, _MAX_RESIDUAL_CORRELATION))
-    return (1.0 + rho) / (1.0 - rho)
+    return float(inflation_of(np.ascontiguousarray(residual_of_point, np.float64),
+                              np.ascontiguousarray(neighbour, np.int64)))
 
 
 def _support(n_inliers: float, n_projected: float, chance: float, spacing_px: float) -> float:
