@@ -23,16 +23,13 @@ from numba import njit
 from numpy.typing import NDArray
 
 from viewloc_core.contour_kernels import edge_residuals_of_points, nearest_view, project_contour
+from viewloc_core.contour_model import KIND_OCCLUDING
 from viewloc_core.gauss_newton_kernel import tukey_weights
 from viewloc_core.normal_search import search_normals
 from viewloc_core.shift_search import shift_scores
 
 F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]
-
-#: :data:`viewloc_core.contour_model.KIND_OCCLUDING` (the outline), which
-#: weighs 1 in the inlier fraction; numba reads a module constant.
-_KIND_OCCLUDING = 0
 
 #: Neighbours whose residuals are compared lie within this many times the
 #: median distance between neighbouring points (farther ones are across a
@@ -340,7 +337,8 @@ def fit_measures(
     view_kinds = kinds[view, :n:stride]
     weight = np.empty(projected)
     for i in range(projected):
-        weight[i] = 1.0 if view_kinds[index[i]] == _KIND_OCCLUDING else self_edge_weight
+        # The outline weighs 1, the part's own edges ``self_edge_weight``.
+        weight[i] = 1.0 if view_kinds[index[i]] == KIND_OCCLUDING else self_edge_weight
     J, r, point = edge_residuals_of_points(grad, uv, n2, X, t, intrinsics[0], intrinsics[1],
                                            0, search, min_gradient, cos_max, prior)
     inl = np.abs(r) <= inlier_px
