@@ -539,6 +539,13 @@ def _reorthonormalized(pose: Pose) -> Pose:
     return Pose(R @ (_ONE_AND_HALF_I - 0.5 * (R.T @ R)), pose.t_m2c)
 
 
+def _contiguous(pose: Pose) -> tuple[Array, Array]:
+    """The pose's rotation and translation as C-contiguous arrays: the
+    compiled kernels are compiled for those (a view of a (4, 4) matrix
+    would compile them again, for seconds, inside a request)."""
+    return np.ascontiguousarray(pose.R_m2c), np.ascontiguousarray(pose.t_m2c)
+
+
 def refine_pose(
     image: NDArray[np.generic] | EdgePyramid,
     camera: Camera,
@@ -591,8 +598,8 @@ def refine_pose(
     for level, search, n_iter in stages:
         R, t, done, step = gauss_newton_level(
             edges.gradients[level], contour_model.points_obj, contour_model.normals_obj,
-            contour_model.counts, contour_model.directions, opts.point_stride, pose.R_m2c,
-            pose.t_m2c, projector.intrinsics, projector.dist, projector.distorted,
+            contour_model.counts, contour_model.directions, opts.point_stride,
+            *_contiguous(pose), projector.intrinsics, projector.dist, projector.distorted,
             projector.window(1.0), level, search, n_iter,
             opts.min_gradient, cos_max, _search_priors(search), opts.tol_px,
             opts.tol_rot_deg, opts.tol_trans_mm)
@@ -622,7 +629,7 @@ def _align_shift(
     model = projector.model
     t = shifted_translation(
         edges.gradients[level], model.points_obj, model.normals_obj, model.counts,
-        model.directions, projector.stride, pose.R_m2c, pose.t_m2c, projector.intrinsics,
+        model.directions, projector.stride, *_contiguous(pose), projector.intrinsics,
         projector.dist, projector.distorted, projector.window(1.0), level,
         float(opts.shift_search_px), float(opts.min_gradient))
     return Pose(pose.R_m2c, t)
@@ -653,8 +660,8 @@ def _final(
     model = projector.model
     projected, n_inliers, values, H = fit_measures(
         edges.gradients[0], model.points_obj, model.normals_obj, model.kinds, model.counts,
-        model.directions, projector.stride, float(projector.self_edge_weight), pose.R_m2c,
-        pose.t_m2c, projector.intrinsics, projector.dist, projector.distorted,
+        model.directions, projector.stride, float(projector.self_edge_weight),
+        *_contiguous(pose), projector.intrinsics, projector.dist, projector.distorted,
         projector.window(1.0), camera.width, camera.height, search, float(opts.min_gradient),
         math.cos(math.radians(opts.max_angle_deg)), _search_prior(search),
         float(opts.inlier_px), _CHANCE_SHIFTS_PX, opts.measure_chance,

@@ -217,3 +217,20 @@ def test_chance_fraction_ignores_shifts_that_leave_the_image():
     rate = chance_fraction(grad, uv, n2, weight, np.array([[0.0, 0.0], [-9.0, 0.0]]), 24, 60,
                            3, 0.1, 0.8, _search_prior(3), 2.0)
     assert rate == 0.5
+
+
+def test_a_pose_viewed_from_a_matrix_needs_no_new_compilation(cluttered_fits):
+    # Pose.from_matrix keeps views of the (4, 4) array, which are not
+    # C-contiguous: passed as they are, every kernel would be compiled again
+    # for them, for seconds, inside a request.
+    from viewloc_core.gauss_newton_kernel import gauss_newton_level
+    from viewloc_core.refine import refine_pose
+
+    edges, model, poses = cluttered_fits
+    refine_pose(edges, CAM, poses[1], model)
+    kernels = (gauss_newton_level, shifted_translation, fit_measures)
+    compiled = [len(k.signatures) for k in kernels]
+    viewed = Pose.from_matrix(poses[1].matrix)
+    assert not viewed.R_m2c.flags.c_contiguous
+    assert refine_pose(edges, CAM, viewed, model).inlier_fraction > 0.5
+    assert [len(k.signatures) for k in kernels] == compiled
