@@ -49,6 +49,40 @@ def tukey_weights(r: F64, min_scale: float) -> F64:  # pragma: no cover - compil
 
 
 @njit(cache=True, nogil=True)
+def normal_equations(J: F64, r: F64, w: F64) -> tuple[F64, F64]:  # pragma: no cover - compiled
+    """Weighted normal equations of a 6-parameter least-squares fit.
+
+    Parameters
+    ----------
+    J : (M, 6) float64
+        Jacobian of the residuals.
+    r : (M,) float64
+        Residuals.
+    w : (M,) float64
+        Their weights.
+
+    Returns
+    -------
+    H : (6, 6) float64
+        ``Jᵀ W J``, symmetric.
+    g : (6,) float64
+        ``Jᵀ W r``.
+    """
+    H = np.zeros((6, 6))
+    g = np.zeros(6)
+    for i in range(r.shape[0]):
+        for a in range(6):
+            wja = w[i] * J[i, a]
+            g[a] += wja * r[i]
+            for b in range(a, 6):
+                H[a, b] += wja * J[i, b]
+    for a in range(6):
+        for b in range(a):
+            H[a, b] = H[b, a]
+    return H, g
+
+
+@njit(cache=True, nogil=True)
 def _solve_cholesky(H: F64, g: F64) -> tuple[bool, F64]:  # pragma: no cover - compiled
     """Solve H x = g for a symmetric positive definite 6x6 H; False when
     H is not positive definite."""
@@ -189,17 +223,8 @@ def gauss_newton_level(
         w = tukey_weights(r, min_scale)
         if np.count_nonzero(w) < 6:
             break
-        H = np.zeros((6, 6))
-        g = np.zeros(6)
-        for i in range(m):
-            for a in range(6):
-                wja = w[i] * J[i, a]
-                g[a] += wja * r[i]
-                for b in range(a, 6):
-                    H[a, b] += wja * J[i, b]
+        H, g = normal_equations(J, r, w)
         for a in range(6):
-            for b in range(a):
-                H[a, b] = H[b, a]
             # Levenberg damping keeps a poorly constrained direction (e.g.
             # depth of a small part) from jumping.
             H[a, a] = H[a, a] * (1.0 + _DAMPING_REL) + _DAMPING_ABS

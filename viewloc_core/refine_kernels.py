@@ -24,7 +24,7 @@ from numpy.typing import NDArray
 
 from viewloc_core.contour_kernels import edge_residuals_of_points, nearest_view, project_contour
 from viewloc_core.contour_model import KIND_OCCLUDING
-from viewloc_core.gauss_newton_kernel import tukey_weights
+from viewloc_core.gauss_newton_kernel import normal_equations, tukey_weights
 from viewloc_core.normal_search import search_normals
 from viewloc_core.shift_search import shift_scores
 
@@ -369,19 +369,8 @@ def fit_measures(
         r_in = r[inl]
         J_in = J[inl]
         w = tukey_weights(r_in, 0.25)
-        w_sum = 0.0
-        wr2 = 0.0
-        for k in range(r_in.shape[0]):
-            w_sum += w[k]
-            wr2 += w[k] * r_in[k] * r_in[k]
-            for a in range(6):
-                wja = w[k] * J_in[k, a]
-                for b in range(a, 6):
-                    H[a, b] += wja * J_in[k, b]
-        for a in range(6):
-            for b in range(a):
-                H[a, b] = H[b, a]
-        values[6] = wr2 / max(w_sum - 6.0, 1.0)
+        H = normal_equations(J_in, r_in, w)[0]
+        values[6] = float((w * r_in * r_in).sum()) / max(float(w.sum()) - 6.0, 1.0)
     return projected, n_inliers, values, H
 
 
