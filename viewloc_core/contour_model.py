@@ -154,6 +154,15 @@ class ContourModel:
         kinds = self.kinds[view, :int(self.counts[view])]
         return kinds if kind is None else kinds[np.isin(kinds, kind)]
 
+    def crease_share(self) -> float:
+        """Share in [0, 1] of the valid points, over every view, that are
+        :data:`KIND_CREASE` (0 for a model without points)."""
+        valid = np.arange(self.points_obj.shape[1]) < self.counts[:, None]
+        total = int(np.count_nonzero(valid))
+        if total == 0:
+            return 0.0
+        return int(np.count_nonzero(valid & (self.kinds == KIND_CREASE))) / total
+
     def outline_only(self) -> ContourModel:
         """The same model without its crease points (see
         :mod:`viewloc_core.crease_visibility`); occluding contours keep their kinds."""

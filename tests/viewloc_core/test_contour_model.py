@@ -128,6 +128,8 @@ def test_the_edge_of_an_open_surface_is_outline_and_outline_only_drops_creases(s
     kinds = model.kinds[0, :model.counts[0]]
     assert (kinds == KIND_OCCLUDING).sum() > 3 * (kinds == KIND_CREASE).sum() > 0
     outline = model.outline_only()
+    assert model.crease_share() == pytest.approx((kinds == KIND_CREASE).mean())
+    assert outline.crease_share() == 0.0
     pts, _ = model.view_points(0, OUTLINE_KINDS)
     assert outline.counts[0] == len(pts)
     np.testing.assert_array_equal(outline.view_points(0)[0], pts)
