@@ -31,7 +31,7 @@ from numpy.typing import NDArray
 
 from viewloc_core.camera import Camera
 from viewloc_core.pose import Pose
-from viewloc_core.shading import SurfaceSamples, visible_samples
+from viewloc_core.shading import SurfaceSamples, silhouette_mask, visible_samples
 
 #: Gap between the projected outline and the ring of surroundings, as a
 #: share of the part's image diameter (at least 2 px): the outline's own
@@ -119,11 +119,7 @@ def _ring_pixels(camera: Camera, pose: Pose, samples: SurfaceSamples,
     x1, y1 = np.ceil(uv.max(axis=0)).astype(int) + margin + 1
     if x1 <= 0 or y1 <= 0 or x0 >= width_img or y0 >= height:
         return None
-    mask = np.zeros((y1 - y0, x1 - x0), np.uint8)
-    ij = np.round(uv - [x0, y0]).astype(np.int64)
-    mask[ij[:, 1], ij[:, 0]] = 1
-    mask = cv2.dilate(mask, cv2.getStructuringElement(cv2.MORPH_ELLIPSE,
-                                                      (2 * dot + 1, 2 * dot + 1)))
+    mask = silhouette_mask(uv, int(x0), int(y0), (int(y1 - y0), int(x1 - x0)), dot)
     # Distance to the silhouette: one pass, whatever the ring's width.
     distance = cv2.distanceTransform(1 - mask, cv2.DIST_L2, cv2.DIST_MASK_5)
     ring = (distance > gap) & (distance <= gap + width)

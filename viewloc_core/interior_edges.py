@@ -28,6 +28,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from viewloc_core.shading import points_mask, silhouette_mask
+
 #: An image edge pixel this close (level pixels) to a predicted contour
 #: point is explained by it: the pose's error and the level's blur.
 EXPLAINED_PX = 2.0
@@ -104,13 +106,12 @@ def interior_edges(
     if x0 >= x1 or y0 >= y1:
         return InteriorEdges(0, 0)
     shape = (y1 - y0, x1 - x0)
-    silhouette = cv2.dilate(_raster(surf, x0, y0, shape), cv2.getStructuringElement(
-        cv2.MORPH_ELLIPSE, (2 * dot + 1, 2 * dot + 1)))
+    silhouette = silhouette_mask(surf, x0, y0, shape, dot)
     # The dilation reaches dot beyond the outline; the erosion takes that
     # back and the outline's own blurred edge with it.
     inside = cv2.erode(silhouette, cv2.getStructuringElement(
         cv2.MORPH_ELLIPSE, (2 * margin - 1, 2 * margin - 1))).astype(bool)
-    contour = _raster(cont, x0, y0, shape)
+    contour = points_mask(cont, x0, y0, shape)
     predicted = int(np.count_nonzero(contour))
     if not inside.any():
         return InteriorEdges(0, predicted)
@@ -121,11 +122,3 @@ def interior_edges(
     on_edge = edge_distance[y0:y1, x0:x1] < 0.5
     return InteriorEdges(int(np.count_nonzero(on_edge & inside & far)), predicted)
 
-
-def _raster(uv: NDArray[np.float64], x0: int, y0: int, shape: tuple[int, int]) -> NDArray[np.uint8]:
-    """(shape) uint8 with 1 at the pixels of the points inside the box at (x0, y0)."""
-    out = np.zeros(shape, np.uint8)
-    ij = np.rint(uv).astype(np.int64) - (x0, y0)
-    keep = (ij[:, 0] >= 0) & (ij[:, 0] < shape[1]) & (ij[:, 1] >= 0) & (ij[:, 1] < shape[0])
-    out[ij[keep, 1], ij[keep, 0]] = 1
-    return out

@@ -116,6 +116,26 @@ def surface_samples(vertices_mm: NDArray[np.floating], faces: NDArray[np.integer
     )
 
 
+def points_mask(uv: NDArray[np.floating], x0: int, y0: int,
+                shape: tuple[int, int]) -> NDArray[np.uint8]:
+    """A (h, w) uint8 box at pixel ``(x0, y0)`` with 1 at the pixel of each of
+    the (N, 2) image points ``uv`` that falls inside it, 0 elsewhere."""
+    out = np.zeros(shape, np.uint8)
+    ij = np.round(np.asarray(uv, np.float64) - (x0, y0)).astype(np.int64)
+    keep = (ij[:, 0] >= 0) & (ij[:, 0] < shape[1]) & (ij[:, 1] >= 0) & (ij[:, 1] < shape[0])
+    out[ij[keep, 1], ij[keep, 0]] = 1
+    return out
+
+
+def silhouette_mask(uv: NDArray[np.floating], x0: int, y0: int, shape: tuple[int, int],
+                    dot_px: int) -> NDArray[np.uint8]:
+    """The silhouette the projected surface samples ``uv`` (N, 2) make in the
+    box of :func:`points_mask`: each a disc of radius ``dot_px``, their
+    spacing in the image, so that neighbours join (uint8, 1 inside)."""
+    return np.asarray(cv2.dilate(points_mask(uv, x0, y0, shape), cv2.getStructuringElement(
+        cv2.MORPH_ELLIPSE, (2 * dot_px + 1, 2 * dot_px + 1))), np.uint8)
+
+
 def intensity_at(image: NDArray[np.generic], uv: NDArray[np.floating]) -> F64:
     """Brightness of the image at sub-pixel positions (bilinear), (M,) float64.
 

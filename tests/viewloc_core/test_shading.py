@@ -2,6 +2,7 @@
 
 import math
 
+import cv2
 import numpy as np
 import pytest
 import trimesh
@@ -16,7 +17,9 @@ from viewloc_core.render import Light, Renderer, prepare
 from viewloc_core.shading import (
     MIN_VISIBLE,
     intensity_at,
+    points_mask,
     shading_agreement,
+    silhouette_mask,
     surface_samples,
     visible_samples,
 )
@@ -172,3 +175,22 @@ def test_intensity_is_read_from_any_supported_image():
     grey_nan = grey.astype(np.float32)
     grey_nan[16, 4] = np.nan
     assert np.isfinite(intensity_at(grey_nan, uv)).all()
+
+
+def test_points_mask_marks_the_points_inside_its_box_only():
+    uv = np.array([[12.2, 21.7], [10.0, 20.0], [9.4, 20.0], [30.0, 25.0]])
+    mask = points_mask(uv, 10, 20, (5, 8))
+    assert mask.dtype == np.uint8 and mask.shape == (5, 8)
+    # (12.2, 21.7) -> column 2, row 2; (10, 20) -> the box's corner; the
+    # other two round to pixels outside it.
+    assert set(zip(*np.nonzero(mask), strict=True)) == {(2, 2), (0, 0)}
+
+
+def test_silhouette_mask_joins_samples_as_far_apart_as_its_discs_are_wide():
+    # A row of samples 3 px apart with discs of radius 2 makes one bar.
+    uv = np.stack([np.arange(5.0, 30.0, 3.0), np.full(9, 10.0)], axis=1)
+    mask = silhouette_mask(uv, 0, 0, (20, 40), 2)
+    assert mask[10, 5:30].all()
+    assert not mask[13, :].any() and mask[12, 5] == 1
+    n_labels, _ = cv2.connectedComponents(mask)
+    assert n_labels == 2  # background and one silhouette
