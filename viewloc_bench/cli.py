@@ -12,7 +12,7 @@ from typing import Any
 from viewloc_bench import lmo, runner, sets
 from viewloc_bench.localizers import Backend, CoreBackend, EngineUnavailableError, HttpBackend
 
-ALL_SETS = ("paper", "hard", "novel", "multi", "lmo")
+ALL_SETS = ("paper", "hard", "novel", "multi", "lmo", "lmo-grey")
 QUICK_IMAGES_PER_N = 2
 QUICK_NEGATIVES = 2
 QUICK_LMO_IMAGES = 20
@@ -101,11 +101,13 @@ def load_sets(args: argparse.Namespace, names: list[str]) -> dict[str, sets.Benc
         else:
             folder, took = lmo.prepare(root, args.lmo_extra)
             ids = lmo.HELDOUT_OBJECTS if args.heldout else lmo.DEV_OBJECTS
-            bench = lmo.load(folder, ids, QUICK_LMO_IMAGES if args.quick else None)
+            # lmo-grey: the same photos, the parts learned from colourless meshes.
+            bench = lmo.load(folder, ids, QUICK_LMO_IMAGES if args.quick else None,
+                             grey=name == "lmo-grey")
             bench.generation_s = took
             print(
-                f"set lmo: {len(bench.images)} images, objects {list(bench.objects)} in {folder} "
-                f"({f'extracted in {took:.1f} s' if took else 'cached'})"
+                f"set {name}: {len(bench.images)} images, objects {list(bench.objects)} in "
+                f"{folder} ({f'extracted in {took:.1f} s' if took else 'cached'})"
             )
         out[name] = bench
     return out

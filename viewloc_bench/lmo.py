@@ -8,7 +8,12 @@ the wheel lacks (``models_info.json``, ``test_targets_bop19.json``,
 
 Objects 1, 5, 6, 8 (ape, can, cat, driller) are the development set;
 9, 10, 11, 12 (duck, eggbox, glue, holepuncher) are held out and only
-evaluated on explicit request. Data: LINEMOD (Hinterstoisser et al., ACCV
+evaluated on explicit request.
+
+The set ``lmo-grey`` (:func:`load` with ``grey=True``) is the same photos
+and targets with each part learned from its mesh stripped of its vertex
+colours (:func:`grey_mesh`): a CAD mesh as a QA station has it, whose part
+can be found by its contour and shading alone. Data: LINEMOD (Hinterstoisser et al., ACCV
 2012), LM-O (Brachmann et al., ECCV 2014), distributed by BOP (Hodaň et al.).
 """
 
@@ -26,6 +31,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+import trimesh
 
 from viewloc_bench.sets import BenchImage, BenchObject, BenchSet, Target, load_object
 from viewloc_core.camera import Camera
@@ -136,8 +142,34 @@ def prepare(
     return folder, time.perf_counter() - t0
 
 
+def grey_mesh(mesh_path: Path, out_dir: Path) -> Path:
+    """The mesh at ``mesh_path`` without its colours, as ``out_dir/<same name>``.
+
+    Only the vertices and faces are kept (the geometry the parts are
+    measured against is untouched). Written once, atomically: a run stopped
+    halfway leaves no partial mesh behind.
+
+    Returns
+    -------
+    Path
+        The colourless PLY.
+    """
+    dest = Path(out_dir) / Path(mesh_path).name
+    if dest.exists():
+        return dest
+    mesh = trimesh.load(mesh_path, force="mesh", process=False)
+    assert isinstance(mesh, trimesh.Trimesh)
+    plain = trimesh.Trimesh(np.asarray(mesh.vertices), np.asarray(mesh.faces), process=False)
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    tmp = dest.with_name(dest.name + ".partial")
+    plain.export(tmp, file_type="ply")
+    tmp.replace(dest)
+    return dest
+
+
 def load(
-    folder: Path, obj_ids: tuple[int, ...] = DEV_OBJECTS, limit: int | None = None
+    folder: Path, obj_ids: tuple[int, ...] = DEV_OBJECTS, limit: int | None = None,
+    grey: bool = False,
 ) -> BenchSet:
     """Load LM-O scene 2 with the BOP19 targets of the chosen objects.
 
@@ -149,6 +181,9 @@ def load(
         Objects to evaluate (default: the development objects).
     limit : int or None
         Keep only the first ``limit`` images (by id) for quick runs.
+    grey : bool
+        Learn each part from its mesh without colours (:func:`grey_mesh`,
+        kept in ``folder/models_grey``): the set ``lmo-grey``.
 
     Each BOP19 target becomes a :class:`Target` (group = object name); each
     image that does not contain an object at all (absent from ``scene_gt``)
@@ -168,9 +203,12 @@ def load(
     objects: dict[str, BenchObject] = {}
     for oid in obj_ids:
         mi = info[str(oid)]
+        mesh_path = folder / "models" / f"obj_{oid:06d}.ply"
+        if grey:
+            mesh_path = grey_mesh(mesh_path, folder / "models_grey")
         objects[OBJECT_NAMES[oid]] = load_object(
             OBJECT_NAMES[oid],
-            folder / "models" / f"obj_{oid:06d}.ply",
+            mesh_path,
             mi["diameter"],
             mi.get("symmetries_discrete", []),
             mi.get("symmetries_continuous", []),
@@ -201,4 +239,5 @@ def load(
                 targets.append(Target(OBJECT_NAMES[oid], None, "negative"))
         if targets:
             images.append(BenchImage(folder / "rgb" / f"{im_id:06d}.png", camera, tuple(targets)))
-    return BenchSet("lmo", folder, objects, images, 0.0, {"obj_ids": list(obj_ids)})
+    return BenchSet("lmo-grey" if grey else "lmo", folder, objects, images, 0.0,
+                    {"obj_ids": list(obj_ids), "mesh_colours": not grey})

