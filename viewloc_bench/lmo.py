@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from model_store.files import atomic_write_bytes
 from viewloc_bench.sets import BenchImage, BenchObject, BenchSet, Target, load_object
 from viewloc_core.camera import Camera
 from viewloc_core.pose import Pose, orthonormalize
@@ -146,8 +147,9 @@ def grey_mesh(mesh_path: Path, out_dir: Path) -> Path:
     """The mesh at ``mesh_path`` without its colours, as ``out_dir/<same name>``.
 
     Only the vertices and faces are kept (the geometry the parts are
-    measured against is untouched). Written once, atomically: a run stopped
-    halfway leaves no partial mesh behind.
+    measured against is untouched). Written once, atomically
+    (:func:`model_store.files.atomic_write_bytes`): a run stopped halfway
+    leaves no partial mesh behind.
 
     Returns
     -------
@@ -160,10 +162,10 @@ def grey_mesh(mesh_path: Path, out_dir: Path) -> Path:
     mesh = trimesh.load(mesh_path, force="mesh", process=False)
     assert isinstance(mesh, trimesh.Trimesh)
     plain = trimesh.Trimesh(np.asarray(mesh.vertices), np.asarray(mesh.faces), process=False)
+    data = plain.export(file_type="ply")
+    assert isinstance(data, bytes)  # PLY is binary
     dest.parent.mkdir(parents=True, exist_ok=True)
-    tmp = dest.with_name(dest.name + ".partial")
-    plain.export(tmp, file_type="ply")
-    tmp.replace(dest)
+    atomic_write_bytes(dest, data)
     return dest
 
 
