@@ -13,8 +13,10 @@ evaluated on explicit request.
 The set ``lmo-grey`` (:func:`load` with ``grey=True``) is the same photos
 and targets with each part learned from its mesh stripped of its vertex
 colours (:func:`grey_mesh`): a CAD mesh as a QA station has it, whose part
-can be found by its contour and shading alone. Data: LINEMOD (Hinterstoisser et al., ACCV
-2012), LM-O (Brachmann et al., ECCV 2014), distributed by BOP (Hodaň et al.).
+can be found by its contour and shading alone.
+
+Data: LINEMOD (Hinterstoisser et al., ACCV 2012), LM-O (Brachmann et al.,
+ECCV 2014), distributed by BOP (Hodaň et al.).
 """
 
 from __future__ import annotations
