@@ -15,6 +15,7 @@ import time
 import weakref
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import cv2
 import numpy as np
@@ -500,6 +501,24 @@ def _to_full_resolution(sim_level: NDArray[np.float64], factor: float) -> Simila
         sim_full[:2] = (sim_level[:2] + 0.5) / factor - 0.5
         sim_full[3] = sim_level[3] / factor
     return sim2.to_similarity2d(sim_full)
+
+
+def _one_channel_if_grey(image: NDArray[Any]) -> NDArray[Any]:
+    """A colour image without colours (:func:`part_colour.is_grey_in_colour`)
+    as the (H, W) maximum of its channels, the grey the features see; any
+    other image as it is.
+
+    A monochrome camera's frames often come stored as RGB. Taken as colour,
+    their chromaticity is flat everywhere: every fit's figure-ground contrast
+    is 0, so no first fit is ever settled and every image pays for spare
+    fits, and the colour gradients cost three channels for one. Hard bench
+    set in luminance grey, learning seed 0: stored as RGB, AR_MSSD / AR_MSPD
+    0.749 / 0.780 with a pose stage of 47.6 ms median; as (H, W), 0.761 /
+    0.793 and 34.4 ms.
+    """
+    if image.ndim == 3 and part_colour.is_grey_in_colour(image):
+        return np.ascontiguousarray(image[..., :3].max(axis=2))
+    return image
 
 
 def _pose_centred(
@@ -1202,6 +1221,7 @@ def localize(
             f"{camera.width}x{camera.height}", "camera",
         )
     to_grey_float(arr[:16, :16])  # dtype and channel checks, cheap
+    arr = _one_channel_if_grey(arr)
     index = model_index(model)
     timing: dict[str, float] = {}
 

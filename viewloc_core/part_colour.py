@@ -199,6 +199,27 @@ def _is_grey(rgb: NDArray[np.uint8]) -> bool:
     return bool(np.mean(spread > GREY_CHANNEL_SPREAD) < MIN_COLOURED_SHARE)
 
 
+def is_grey_in_colour(image: NDArray[np.generic]) -> bool:
+    """Whether a colour image shows no colours: a monochrome camera's frame
+    stored as RGB (or RGBA), or one whose channels differ by little more
+    than noise (see :data:`GREY_CHANNEL_SPREAD`).
+
+    Parameters
+    ----------
+    image : (H, W) or (H, W, C) array
+        Any image.
+
+    Returns
+    -------
+    bool
+        True for an (H, W, 3|4) uint8 or uint16 image without colours; False
+        for a grey (H, W) image, one with colours, and float images (whose
+        unit is unknown).
+    """
+    rgb = _rgb_uint8(image)
+    return rgb is not None and _is_grey(rgb)
+
+
 def bin_log_ratios(image: NDArray[np.generic], histogram: F32,
                    ) -> tuple[NDArray[np.int32], F32] | None:
     """Each pixel's colour bin, and each bin's log likelihood ratio part

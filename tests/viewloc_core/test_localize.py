@@ -102,6 +102,39 @@ def test_a_part_in_fog_is_found_as_in_clear_air(renderer, bracket_mesh, bracket_
                         lambda edges, centre, radius, ceiling: ceiling)
     assert found() <= 1
 
+def test_a_grey_image_stored_as_rgb_is_localized_as_the_grey_image(
+    renderer, bracket_mesh, bracket_model, monkeypatch
+):
+    # A monochrome camera's frame stored as RGB carries no colour: it must
+    # give the grey image's answer, not fits judged by a chromaticity that
+    # is flat everywhere (a figure-ground contrast of 0 that is never
+    # settled, so that every image pays for spare fits).
+    cam = Camera(560.0, 560.0, 319.5, 239.5, 640, 480)
+    pose = Pose(Rotation.random(random_state=3).as_matrix(), np.array([20.0, -10.0, 620.0]))
+    grey = render_scene(renderer, bracket_mesh, cam, pose, clutter=3, rng=3).max(axis=2)
+    as_rgb = np.repeat(grey[:, :, None], 3, axis=2)
+    contrasts: list[float | None] = []
+    measure = localize_module.figure_ground_contrast
+
+    def recorded(*args, **kwargs):
+        contrasts.append(measure(*args, **kwargs))
+        return contrasts[-1]
+
+    monkeypatch.setattr(localize_module, "figure_ground_contrast", recorded)
+    from_grey = localize(bracket_model, grey, cam).detections
+    from_rgb = localize(bracket_model, as_rgb, cam).detections
+    assert from_grey and len(from_rgb) == len(from_grey)
+    for a, b in zip(from_grey, from_rgb, strict=True):
+        assert a.score == b.score
+        assert np.array_equal(a.pose.R_m2c, b.pose.R_m2c)
+        assert np.array_equal(a.pose.t_m2c, b.pose.t_m2c)
+    assert contrasts and all(c is None for c in contrasts)
+    # A scene in colour (here a warm light's tint) is still judged by its colours.
+    tinted = (grey[:, :, None] * np.array([1.0, 0.8, 0.5])).astype(np.uint8)
+    localize(bracket_model, tinted, cam)
+    assert any(c is not None for c in contrasts)
+
+
 def _fit(score: float, refined: bool, tag: int, chance_corrected: float | None = None,
          evidence: float = 100.0) -> _Fitted:
     """A fitted location told apart by its model view."""

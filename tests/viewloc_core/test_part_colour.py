@@ -69,6 +69,22 @@ def test_no_histogram_from_grey_images_or_too_few_pixels() -> None:
         acc.add(np.zeros((32, 32, 3), np.uint8), np.ones((16, 16)))
 
 
+def test_a_colour_image_without_colours_is_told_from_one_with_them() -> None:
+    grey = np.random.default_rng(0).integers(0, 256, (48, 64), dtype=np.uint8)
+    as_rgb = np.repeat(grey[:, :, None], 3, axis=2)
+    assert pc.is_grey_in_colour(as_rgb)
+    assert pc.is_grey_in_colour(np.dstack([as_rgb, np.full_like(grey, 255)]))  # RGBA
+    assert pc.is_grey_in_colour(as_rgb.astype(np.uint16) * 257)
+    # Channels a few levels apart (a compressed monochrome frame) are still grey.
+    noisy = np.clip(as_rgb.astype(np.int16) + np.random.default_rng(1).integers(
+        -3, 4, as_rgb.shape), 0, 255).astype(np.uint8)
+    assert pc.is_grey_in_colour(noisy)
+    # Not grey in colour: a plain grey image, one with a coloured patch, floats.
+    assert not pc.is_grey_in_colour(grey)
+    assert not pc.is_grey_in_colour(_scene_with_patch(ORANGE, (200, 150), 12))
+    assert not pc.is_grey_in_colour(as_rgb.astype(np.float32) / 255.0)
+
+
 def test_back_projection_is_positive_on_the_part_and_negative_around_it() -> None:
     hist = _histogram_of(ORANGE)
     img = _scene_with_patch(ORANGE, (250, 120), 12)
