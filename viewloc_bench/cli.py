@@ -12,7 +12,7 @@ from typing import Any
 from viewloc_bench import lmo, runner, sets
 from viewloc_bench.localizers import Backend, CoreBackend, EngineUnavailableError, HttpBackend
 
-ALL_SETS = ("paper", "hard", "novel", "multi", "lmo", "lmo-grey")
+ALL_SETS = ("paper", "hard", "novel", "multi", "hard-mono", "lmo", "lmo-grey")
 QUICK_IMAGES_PER_N = 2
 QUICK_NEGATIVES = 2
 QUICK_LMO_IMAGES = 20
@@ -88,10 +88,14 @@ def load_sets(args: argparse.Namespace, names: list[str]) -> dict[str, sets.Benc
         per_n = args.images_per_n
     for name in names:
         t0 = time.perf_counter()
-        if name in sets.SPECS:
-            spec = set_spec(name, per_n, args.scale)
+        # hard-mono: the hard set's images as a monochrome camera sees them.
+        generated = name.removesuffix("-mono")
+        if generated in sets.SPECS:
+            spec = set_spec(generated, per_n, args.scale)
             folder = sets.generate(spec, args.seed, root, workers=args.workers)
             bench = sets.load_generated(folder)
+            if generated != name:
+                bench = sets.monochrome(bench)
             took = time.perf_counter() - t0
             state = "generated" if took > 1.0 else "cached"
             print(

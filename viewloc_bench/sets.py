@@ -27,6 +27,7 @@ does not depend on the number of parallel workers.
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import shutil
 import time
@@ -41,6 +42,7 @@ import trimesh
 from numpy.typing import NDArray
 from PIL import Image
 
+from model_store.files import atomic_write_bytes
 from viewloc_bench import povray as pv
 from viewloc_bench import scenes, shapes
 from viewloc_core.camera import Camera
@@ -532,3 +534,45 @@ def load_generated(folder: Path) -> BenchSet:
                               conditions=_conditions(e)),)
         images.append(BenchImage(folder / e["file"], camera, targets))
     return BenchSet(gt["name"], folder, objects, images, gt["generation_s"], gt)
+
+
+#: The folder of a generated set that holds its images as a monochrome camera
+#: would see them (:func:`monochrome`).
+MONO_FOLDER = "mono"
+
+
+def monochrome(bench: BenchSet) -> BenchSet:
+    """The same set as a monochrome camera sees it: each image in grey, stored as RGB.
+
+    Machine-vision stations mostly use monochrome cameras, and their frames
+    often reach the service as RGB files with three equal channels. The grey
+    is the luminance of the rendered colours (ITU-R BT.601 weights, what
+    OpenCV's ``COLOR_RGB2GRAY`` computes), about what a sensor without a
+    colour filter integrates: edges between colours of equal brightness
+    vanish, and no colour cue is left. The images are written once into
+    ``<set folder>/mono/`` (atomically; a second call reuses them); targets,
+    cameras and objects are the set's own. Its name gets ``-mono``.
+
+    Parameters
+    ----------
+    bench : BenchSet
+        A loaded set (its images RGB or grey PNGs).
+
+    Returns
+    -------
+    BenchSet
+    """
+    out_dir = bench.folder / MONO_FOLDER
+    out_dir.mkdir(exist_ok=True)
+    images = []
+    for im in bench.images:
+        path = out_dir / im.path.name
+        if not path.exists():
+            with Image.open(im.path) as pil:
+                grey = pil.convert("RGB").convert("L")  # BT.601 luma
+            buf = io.BytesIO()
+            Image.merge("RGB", (grey, grey, grey)).save(buf, format="PNG")
+            atomic_write_bytes(path, buf.getvalue())
+        images.append(replace(im, path=path))
+    return BenchSet(f"{bench.name}-mono", bench.folder, bench.objects, images,
+                    bench.generation_s, bench.meta)

@@ -203,7 +203,8 @@ def test_novel_spec_is_the_hard_scenes_with_new_objects() -> None:
     assert (novel.images_per_n, novel.negatives, novel.n_values) == (10, 4, (0, 2, 4, 6))
     assert novel.camera == hard.camera and novel.scene == hard.scene
     assert len(set(sets.SET_CODES.values())) == len(sets.SET_CODES)
-    assert set(sets.SPECS) <= set(cli.ALL_SETS) <= set(sets.SPECS) | {"lmo", "lmo-grey"}
+    assert set(sets.SPECS) <= set(cli.ALL_SETS) <= set(sets.SPECS) | {"hard-mono", "lmo",
+                                                                       "lmo-grey"}
     assert cli.ALL_SETS.index("novel") == cli.ALL_SETS.index("hard") + 1
 
 
@@ -240,7 +241,7 @@ def test_multi_spec_is_the_hard_scenes_with_three_instances() -> None:
     assert (multi.images_per_n, multi.negatives) == (8, 0)
     assert multi.camera == hard.camera and multi.scene == hard.scene
     assert cli.ALL_SETS.index("multi") == cli.ALL_SETS.index("novel") + 1
-    assert cli.ALL_SETS[-2:] == ("lmo", "lmo-grey")
+    assert cli.ALL_SETS[-3:] == ("hard-mono", "lmo", "lmo-grey")
     # Smaller runs (--quick, --images-per-n) keep the others' negatives and add none here.
     assert cli.set_spec("multi", 2, 1.0) == sets.multi_spec(2, 0)
     assert cli.set_spec("paper", 2, 1.0) == sets.paper_spec(2, 2)
@@ -311,3 +312,29 @@ def test_images_digest_follows_the_pixels_not_the_files(tiny_paper_set: Path,
     assert sets.images_digest(moved) != digest
     # The same images in another order: another fingerprint.
     assert sets.images_digest(bench.images[::-1]) != digest
+
+
+def test_the_mono_set_is_the_same_targets_in_grey_stored_as_rgb(tiny_paper_set: Path) -> None:
+    bench = sets.load_generated(tiny_paper_set)
+    mono = sets.monochrome(bench)
+    assert mono.name == f"{bench.name}-mono"
+    assert mono.objects is bench.objects
+    assert len(mono.images) == len(bench.images)
+    for colour, grey in zip(bench.images, mono.images, strict=True):
+        assert grey.targets == colour.targets and grey.camera == colour.camera
+        assert grey.path.parent == tiny_paper_set / sets.MONO_FOLDER
+        with Image.open(colour.path) as pil:
+            rgb = np.asarray(pil.convert("RGB"), np.float64)
+        with Image.open(grey.path) as pil:
+            assert pil.mode == "RGB"
+            stored = np.asarray(pil, np.int16)
+        # Three equal channels holding the luminance of the colours.
+        assert (stored == stored[:, :, :1]).all()
+        luma = rgb @ np.array([0.299, 0.587, 0.114])
+        assert np.abs(stored[:, :, 0] - luma).max() <= 1.0
+    # Written once: a second call reuses the files and leaves no temporary one.
+    stamps = {p: p.stat().st_mtime_ns for p in (tiny_paper_set / sets.MONO_FOLDER).iterdir()}
+    assert [im.path for im in sets.monochrome(bench).images] == [im.path for im in mono.images]
+    assert {p: p.stat().st_mtime_ns
+            for p in (tiny_paper_set / sets.MONO_FOLDER).iterdir()} == stamps
+    assert all(p.suffix == ".png" for p in stamps)
