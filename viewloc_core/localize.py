@@ -511,10 +511,10 @@ def _one_channel_if_grey(image: NDArray[Any]) -> NDArray[Any]:
     A monochrome camera's frames often come stored as RGB. Taken as colour,
     their chromaticity is flat everywhere: every fit's figure-ground contrast
     is 0, so no first fit is ever settled and every image pays for spare
-    fits, and the colour gradients cost three channels for one. Hard bench
-    set in luminance grey, learning seed 0: stored as RGB, AR_MSSD / AR_MSPD
-    0.749 / 0.780 with a pose stage of 47.6 ms median; as (H, W), 0.761 /
-    0.793 and 34.4 ms.
+    fits, and the colour gradients cost three channels for one. Bench set
+    hard-mono (the hard set's luminance stored as RGB), learning seed 0:
+    AR_MSSD / AR_MSPD 0.729 / 0.761 with a pose stage of 53.8 ms median when
+    taken as colour, 0.749 / 0.780 and 32.0 ms as grey.
     """
     if image.ndim == 3 and part_colour.is_grey_in_colour(image):
         return np.ascontiguousarray(image[..., :3].max(axis=2))
