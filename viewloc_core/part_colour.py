@@ -192,11 +192,23 @@ class ColourAccumulator:
         return _normalised(self._counts)
 
 
+#: Pixels the grey test reads, about (an even grid, every 4th pixel each way
+#: at least): the share of coloured pixels needs no more, and the test runs
+#: on every request, whatever the camera's resolution.
+GREY_TEST_PIXELS = 20_000
+
+
 def _is_grey(rgb: NDArray[np.uint8]) -> bool:
     """Whether an RGB image shows no colours (see :data:`GREY_CHANNEL_SPREAD`)."""
-    sample = np.asarray(rgb[::4, ::4], np.int16).reshape(-1, 3)
-    spread = sample.max(axis=1) - sample.min(axis=1)
-    return bool(np.mean(spread > GREY_CHANNEL_SPREAD) < MIN_COLOURED_SHARE)
+    height, width = rgb.shape[:2]
+    step = max(4, math.ceil(math.sqrt(height * width / GREY_TEST_PIXELS)))
+    sample = rgb[::step, ::step]
+    # Channel planes, not a reduction over the trailing axis of 3, which
+    # costs ten times more (1.5 ms at 640x480).
+    r, g, b = (np.asarray(sample[..., c], np.int16) for c in range(3))
+    spread = np.maximum(np.maximum(r, g), b) - np.minimum(np.minimum(r, g), b)
+    return bool(np.count_nonzero(spread > GREY_CHANNEL_SPREAD)
+                < MIN_COLOURED_SHARE * spread.size)
 
 
 def is_grey_in_colour(image: NDArray[np.generic]) -> bool:
