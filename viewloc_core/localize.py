@@ -11,6 +11,7 @@ tracking).
 
 from __future__ import annotations
 
+import math
 import time
 import weakref
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -129,6 +130,15 @@ QUICK_REFINE = RefineOptions(iterations=(3, 3), measure_chance=False,
 #: the twin turns about the part's centroid, whose image stays where the
 #: fit put it, so the search for a 2D shift is skipped.
 TWIN_REFINE = replace(QUICK_REFINE, shift_search_px=0.0)
+
+#: The refinements' pyramid (RefineOptions.levels, search_px, iterations,
+#: shift_search_px) is set for images up to about this long side (px). A
+#: larger image of the same scene shows the part larger, and the start the
+#: search level gives is off by as many more full-resolution pixels: each
+#: doubling of the long side beyond it adds a coarser level to start on
+#: (:func:`_refine_levels`), where the start's error and the part look as
+#: they would in an image of this size.
+REFINE_REFERENCE_SIDE_PX = 640
 
 #: A refinement that confirms this share of the contour needs no other start
 #: (true poses: median 0.90, 10th percentile 0.79 on the paper set; fits
@@ -543,13 +553,38 @@ class _FitOptions:
     @classmethod
     def near(cls, edges: EdgePyramid, camera: Camera, pose: Pose,
              diameter_mm: float) -> _FitOptions:
-        """The options for a part near ``pose`` (object centre in front of the camera)."""
+        """The options for a part near ``pose`` (object centre in front of the
+        camera), on all of the pyramid's levels (see :func:`_refine_levels`)."""
         z = float(pose.t_m2c[2])
         centre = camera.project(pose.t_m2c[None])[0]
         floor = local_min_gradient(edges, (float(centre[0]), float(centre[1])),
                                    0.5 * camera.fx * diameter_mm / z, FINAL_REFINE.min_gradient)
-        return cls(*(replace(o, min_gradient=min(o.min_gradient, floor))
+        return cls(*(_on_levels(replace(o, min_gradient=min(o.min_gradient, floor)),
+                                edges.levels)
                      for o in (FINAL_REFINE, QUICK_REFINE, TWIN_REFINE)))
+
+
+def _refine_levels(width: int, height: int) -> int:
+    """Pyramid levels of the refinements for an image of this size:
+    ``FINAL_REFINE.levels``, and one more for each doubling of the long side
+    beyond :data:`REFINE_REFERENCE_SIDE_PX` (at most 5)."""
+    doublings = round(math.log2(max(width, height) / REFINE_REFERENCE_SIDE_PX))
+    return min(5, FINAL_REFINE.levels + max(0, doublings))
+
+
+def _on_levels(options: RefineOptions, levels: int) -> RefineOptions:
+    """``options`` started on ``levels`` pyramid levels: each level it has
+    too few of searches and iterates as its coarsest does, and the start's
+    shift search reaches as many more full-resolution pixels as the extra
+    levels halve (the same reach on the coarsest level); ``options`` as
+    they are for their own number of levels or fewer."""
+    extra = levels - options.levels
+    if extra <= 0:
+        return options
+    return replace(options, levels=levels,
+                   search_px=options.search_px + (options.search_px[-1],) * extra,
+                   iterations=options.iterations + (options.iterations[-1],) * extra,
+                   shift_search_px=options.shift_search_px * 2.0 ** extra)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -1241,7 +1276,8 @@ def localize(
     # its final and quick fits).
     edges_future: Future[EdgePyramid] | None = None
     if contour is not None:
-        edges_future = _EDGE_POOL.submit(prepare_edges, arr, FINAL_REFINE.levels)
+        edges_future = _EDGE_POOL.submit(prepare_edges, arr,
+                                         _refine_levels(arr.shape[1], arr.shape[0]))
     config = AlignConfig()
     # The clutter model of the image, for the alignment and the view search.
     chance = chance_rates(feats)

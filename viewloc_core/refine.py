@@ -587,7 +587,9 @@ def refine_pose(
     n_levels = min(opts.levels, edges.levels, len(opts.search_px), len(opts.iterations))
     projector = _Projector(camera, contour_model, opts.point_stride,
                            self_edge_weight=opts.self_edge_weight)
-    pose = _align_shift(pose_init, projector, edges, min(1, n_levels - 1), opts)
+    # The shift search runs on the coarsest level used: it captures the
+    # start's error there, in as many level pixels whatever the image's size.
+    pose = _align_shift(pose_init, projector, edges, n_levels - 1, opts)
     iterations = 0
     last = _Step()
     cos_max = math.cos(math.radians(opts.max_angle_deg))

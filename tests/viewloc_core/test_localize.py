@@ -18,10 +18,12 @@ from viewloc_core.localize import (
     EVIDENCE_WEIGHT,
     FIGURE_GROUND_FULL,
     FIGURE_GROUND_WEIGHT,
+    FINAL_REFINE,
     FIRST_FIT_MIN_FIGURE_GROUND,
     GOOD_FIT_FRACTION,
     MIN_COLOUR_AGREEMENT,
     MIN_COLOUR_RANK,
+    QUICK_REFINE,
     SPARE_MIN_CHANCE_CORRECTED,
     SPARE_MIN_CHANCE_CORRECTED_IN_COLOUR,
     SPARE_MIN_VIEW_EVIDENCE_SHARE,
@@ -31,9 +33,11 @@ from viewloc_core.localize import (
     _Fitted,
     _Located,
     _non_increasing,
+    _on_levels,
     _other_sides,
     _pose_centred,
     _ranked,
+    _refine_levels,
     _settled,
     _spare_locations,
     _view_candidate_count,
@@ -41,7 +45,7 @@ from viewloc_core.localize import (
 )
 from viewloc_core.near_symmetry import NearSymmetries
 from viewloc_core.pose import Pose, rotation_angle_deg
-from viewloc_core.refine import RefinementResult
+from viewloc_core.refine import RefinementResult, RefineOptions, prepare_edges, refine_pose
 from viewloc_core.render import prepare
 from viewloc_core.view_search import ViewCandidate
 from viewloc_core.view_sphere import view_directions
@@ -453,3 +457,52 @@ def test_each_of_three_copies_is_found_once(renderer, bracket_mesh, bracket_mode
              if np.hypot(*(copies_px - [d.similarity.x, d.similarity.y]).T).min() < 20.0]
     assert sorted(found) == [0, 1, 2]
     assert [d.score for d in dets] == sorted((d.score for d in dets), reverse=True)
+
+
+def test_larger_images_are_refined_from_coarser_levels() -> None:
+    assert _refine_levels(640, 480) == _refine_levels(384, 288) == FINAL_REFINE.levels
+    assert _refine_levels(800, 600) == FINAL_REFINE.levels
+    assert _refine_levels(1280, 960) == FINAL_REFINE.levels + 1
+    assert _refine_levels(1024, 1280) == FINAL_REFINE.levels + 1
+    assert _refine_levels(2448, 2048) == FINAL_REFINE.levels + 2
+    assert _refine_levels(20_000, 15_000) == 5
+    # Options on their own levels or fewer stay as they are.
+    assert _on_levels(FINAL_REFINE, FINAL_REFINE.levels) is FINAL_REFINE
+    assert _on_levels(QUICK_REFINE, 1) is QUICK_REFINE
+    # The extra, coarser levels search and iterate as the coarsest did, and the
+    # shift search reaches as far on the new coarsest level.
+    deeper = _on_levels(FINAL_REFINE, FINAL_REFINE.levels + 2)
+    assert deeper.levels == FINAL_REFINE.levels + 2
+    assert deeper.search_px == FINAL_REFINE.search_px + (FINAL_REFINE.search_px[-1],) * 2
+    assert deeper.iterations == FINAL_REFINE.iterations + (FINAL_REFINE.iterations[-1],) * 2
+    assert deeper.shift_search_px == 4.0 * FINAL_REFINE.shift_search_px
+    assert (deeper.polish_px, deeper.min_gradient) == (FINAL_REFINE.polish_px,
+                                                       FINAL_REFINE.min_gradient)
+
+
+def test_a_start_as_far_off_as_at_640_px_is_captured_in_a_1280_px_image(
+        bracket_contour_scene) -> None:
+    # The start the search level gives is off by as many pixels of a
+    # 640-px image whatever the camera's resolution, so by twice as many in
+    # a 1280-px one: 28 px sideways, 4 degrees and 2 % of depth here. The
+    # two levels set for 640 px (a 16-px shift search on the 640-px level)
+    # do not capture it; a third level to start on does.
+    renderer, prepared, contour = bracket_contour_scene
+    cam = Camera(1200.0, 1200.0, 645.5, 475.5, 1280, 960)
+    rng = np.random.default_rng(0)
+    truth = Pose(Rotation.random(random_state=0).as_matrix(), np.array([20.0, -15.0, 600.0]))
+    image = renderer.render(prepared, cam, truth).color
+    axis = rng.normal(size=3)
+    turn = Rotation.from_rotvec(axis / np.linalg.norm(axis) * np.radians(4.0)).as_matrix()
+    start = Pose(turn @ truth.R_m2c, truth.t_m2c * [1.0, 1.0, 1.02] + [14.0 * 0.6, 14.0 * 0.8, 0])
+    edges = prepare_edges(image, _refine_levels(cam.width, cam.height))
+
+    def error(options: RefineOptions) -> tuple[float, float]:
+        pose = refine_pose(edges, cam, start, contour, options).pose
+        return (rotation_angle_deg(pose.R_m2c, truth.R_m2c),
+                float(np.linalg.norm(pose.t_m2c - truth.t_m2c)))
+
+    rot_deg, t_mm = error(_on_levels(FINAL_REFINE, edges.levels))
+    assert rot_deg < 1.0 and t_mm < 3.0
+    rot_deg, t_mm = error(FINAL_REFINE)
+    assert rot_deg > 2.0 or t_mm > 6.0
