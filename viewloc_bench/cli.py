@@ -12,7 +12,14 @@ from typing import Any
 from viewloc_bench import lmo, runner, sets
 from viewloc_bench.localizers import Backend, CoreBackend, EngineUnavailableError, HttpBackend
 
-ALL_SETS = ("paper", "hard", "novel", "multi", "hard-mono", "lmo", "lmo-grey")
+ALL_SETS = ("paper", "hard", "novel", "multi", "hard-mono", "hard-hd", "lmo", "lmo-grey")
+
+#: Sets made from a generated one: its images as a monochrome camera sees
+#: them (``-mono``, :func:`viewloc_bench.sets.monochrome`), or its scenes
+#: rendered at twice the resolution, 1280x960 for hard (``-hd``: a
+#: megapixel camera, the part twice as many pixels across).
+DERIVED_SUFFIXES = ("-mono", "-hd")
+HD_SCALE = 2.0
 QUICK_IMAGES_PER_N = 2
 QUICK_NEGATIVES = 2
 QUICK_LMO_IMAGES = 20
@@ -88,13 +95,16 @@ def load_sets(args: argparse.Namespace, names: list[str]) -> dict[str, sets.Benc
         per_n = args.images_per_n
     for name in names:
         t0 = time.perf_counter()
-        # hard-mono: the hard set's images as a monochrome camera sees them.
-        generated = name.removesuffix("-mono")
+        generated, suffix = name, ""
+        for derived in DERIVED_SUFFIXES:
+            if name.endswith(derived):
+                generated, suffix = name.removesuffix(derived), derived
         if generated in sets.SPECS:
-            spec = set_spec(generated, per_n, args.scale)
+            scale = args.scale * (HD_SCALE if suffix == "-hd" else 1.0)
+            spec = set_spec(generated, per_n, scale)
             folder = sets.generate(spec, args.seed, root, workers=args.workers)
             bench = sets.load_generated(folder)
-            if generated != name:
+            if suffix == "-mono":
                 bench = sets.monochrome(bench)
             took = time.perf_counter() - t0
             state = "generated" if took > 1.0 else "cached"

@@ -203,8 +203,8 @@ def test_novel_spec_is_the_hard_scenes_with_new_objects() -> None:
     assert (novel.images_per_n, novel.negatives, novel.n_values) == (10, 4, (0, 2, 4, 6))
     assert novel.camera == hard.camera and novel.scene == hard.scene
     assert len(set(sets.SET_CODES.values())) == len(sets.SET_CODES)
-    assert set(sets.SPECS) <= set(cli.ALL_SETS) <= set(sets.SPECS) | {"hard-mono", "lmo",
-                                                                       "lmo-grey"}
+    assert set(sets.SPECS) <= set(cli.ALL_SETS) <= set(sets.SPECS) | {
+        "hard-mono", "hard-hd", "lmo", "lmo-grey"}
     assert cli.ALL_SETS.index("novel") == cli.ALL_SETS.index("hard") + 1
 
 
@@ -241,7 +241,7 @@ def test_multi_spec_is_the_hard_scenes_with_three_instances() -> None:
     assert (multi.images_per_n, multi.negatives) == (8, 0)
     assert multi.camera == hard.camera and multi.scene == hard.scene
     assert cli.ALL_SETS.index("multi") == cli.ALL_SETS.index("novel") + 1
-    assert cli.ALL_SETS[-3:] == ("hard-mono", "lmo", "lmo-grey")
+    assert cli.ALL_SETS[-4:] == ("hard-mono", "hard-hd", "lmo", "lmo-grey")
     # Smaller runs (--quick, --images-per-n) keep the others' negatives and add none here.
     assert cli.set_spec("multi", 2, 1.0) == sets.multi_spec(2, 0)
     assert cli.set_spec("paper", 2, 1.0) == sets.paper_spec(2, 2)
@@ -338,3 +338,27 @@ def test_the_mono_set_is_the_same_targets_in_grey_stored_as_rgb(tiny_paper_set: 
     assert {p: p.stat().st_mtime_ns
             for p in (tiny_paper_set / sets.MONO_FOLDER).iterdir()} == stamps
     assert all(p.suffix == ".png" for p in stamps)
+
+
+def test_an_hd_set_is_the_same_scenes_at_twice_the_resolution(tmp_path: Path) -> None:
+    if povray.povray_executable() is None:
+        pytest.skip("povray not installed")
+    args = cli.parse_args(["--out", str(tmp_path), "--scale", "0.25", "--images-per-n", "1",
+                           "--workers", "2"])
+    loaded = cli.load_sets(args, ["paper", "paper-hd"])
+    plain, hd = loaded["paper"], loaded["paper-hd"]
+    assert len(hd.images) == len(plain.images) > 0
+    for a, b in zip(plain.images, hd.images, strict=True):
+        assert (b.camera.width, b.camera.height) == (2 * a.camera.width, 2 * a.camera.height)
+        assert b.camera.fx == pytest.approx(2 * a.camera.fx)
+        assert [(t.object_name, t.group) for t in b.targets] == [
+            (t.object_name, t.group) for t in a.targets]
+        # The same scene draws: the same conditions. (The part's placement is
+        # drawn again where the visible fraction, measured on renders of the
+        # image's size, falls otherwise: in tiny images like these, not at
+        # full size, where all 80 hard scenes keep their distance.)
+        for ta, tb in zip(a.targets, b.targets, strict=True):
+            assert ta.conditions == tb.conditions
+            assert (ta.pose is None) == (tb.pose is None)
+        with Image.open(b.path) as pil:
+            assert pil.size == (b.camera.width, b.camera.height)
