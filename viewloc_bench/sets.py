@@ -574,5 +574,4 @@ def monochrome(bench: BenchSet) -> BenchSet:
             Image.merge("RGB", (grey, grey, grey)).save(buf, format="PNG")
             atomic_write_bytes(path, buf.getvalue())
         images.append(replace(im, path=path))
-    return BenchSet(f"{bench.name}-mono", bench.folder, bench.objects, images,
-                    bench.generation_s, bench.meta)
+    return replace(bench, name=f"{bench.name}-mono", images=images)

@@ -106,6 +106,7 @@ def test_a_part_in_fog_is_found_as_in_clear_air(renderer, bracket_mesh, bracket_
                         lambda edges, centre, radius, ceiling: ceiling)
     assert found() <= 1
 
+
 def test_a_grey_image_stored_as_rgb_is_localized_as_the_grey_image(
     renderer, bracket_mesh, bracket_model, monkeypatch
 ):
