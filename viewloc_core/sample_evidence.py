@@ -9,11 +9,17 @@ array form that is a dozen passes over (pairs x samples) temporaries; here it
 is one pass with no temporaries. Positions are computed in float32 exactly as
 the array form did (the rounding to a pixel decides hits).
 
-The outcome of a sample indexes a table of log-likelihood ratios per bin
+The outcome of a sample indexes a table of log-likelihood ratios per row
 (:data:`MISS`, :data:`WEAK_HIT`, :data:`STRONG_HIT`) rather than choosing
 between them by branches: whether a hit is strong is as good as random to
 the processor, and the nested branch made the grid kernel 4.6 times slower
 (22 against 4.8 ms on 2 million samples; the table lookup takes 7).
+
+A template sample carries a code, ``class * B + bin`` (``B`` orientation
+bins): its orientation bin and the class of edge it stands for (outline,
+crease, ... : :mod:`viewloc_core.sample_classes`), each class with its own
+rate of being found and so its own ``B`` rows of the table. A table of ``B``
+rows serves templates of one class (codes below ``B``).
 """
 
 from __future__ import annotations
@@ -52,13 +58,16 @@ def _laid_template(
         v = int(np.rint(s * px[t, p] + c * py[t, p] + ty))
         if u < 0 or u >= w or v < 0 or v >= h:
             continue
-        b = (bins[t, p] + tn) & (n_bins - 1)
-        acc_best += max(log_ratio[b, WEAK_HIT], log_ratio[b, STRONG_HIT])
+        code = np.int64(bins[t, p])
+        b = (code + tn) & (n_bins - 1)
+        # The sample's class picks its rows of the table, its bin the row.
+        row = code - (code & (n_bins - 1)) + b
+        acc_best += max(log_ratio[row, WEAK_HIT], log_ratio[row, STRONG_HIT])
         hit = (bits[v, u] & wanted[b]) != 0
         # The strong map is a subset of the full one: 0, 1 or 2 is MISS,
         # WEAK_HIT or STRONG_HIT.
         outcome = np.int64(hit) + np.int64((strong_bits[v, u] & wanted[b]) != 0)
-        acc += log_ratio[b, outcome]
+        acc += log_ratio[row, outcome]
         n_hit += hit
     return acc, n_hit, count, acc_best
 
@@ -85,7 +94,8 @@ def lay_over(
     px, py : (T, P) float32
         Sample positions of the templates, template pixels.
     bins : (T, P) uint8
-        Their orientation bins.
+        Their codes: ``class * B + orientation bin`` (see the module's
+        docstring; the orientation bin alone for a table of ``B`` rows).
     valid : (T, P) bool
         Real samples (not padding).
     rows : (H,) int64
@@ -96,10 +106,11 @@ def lay_over(
         Its translation, image pixels.
     turn : (H,) uint8
         Orientation bins its angle turns the samples by.
-    log_ratio : (B, 3) float64
-        Log-likelihood ratio per orientation bin of a miss, a hit on a weak
-        edge and a hit on a strong one (columns :data:`MISS`,
-        :data:`WEAK_HIT`, :data:`STRONG_HIT`).
+    log_ratio : (C * B, 3) float64
+        Log-likelihood ratio per sample class and orientation bin (row
+        ``class * B + bin``) of a miss, a hit on a weak edge and a hit on a
+        strong one (columns :data:`MISS`, :data:`WEAK_HIT`,
+        :data:`STRONG_HIT`); ``B = len(wanted)`` must be a power of two.
 
     Returns
     -------

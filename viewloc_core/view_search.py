@@ -39,6 +39,7 @@ from viewloc_core.features import (
     orientation_bin,
 )
 from viewloc_core.model import ObjectModel, cached_per_model
+from viewloc_core.sample_classes import sample_codes, training_view_sample_classes
 
 F64 = NDArray[np.float64]
 
@@ -95,7 +96,8 @@ class ViewTemplates:
     px, py : (T, P) float32
         ``pts`` split by coordinate in the precision the scoring uses.
     bins8 : (T, P) uint8
-        ``bins`` in the integer type the scoring uses.
+        ``bins`` with each sample's class, as the scoring reads them
+        (:func:`viewloc_core.sample_classes.sample_codes`).
     coarse_px, coarse_py : (T, C) float32
     coarse_bins8 : (T, C) uint8
     coarse_valid : (T, C) bool
@@ -145,7 +147,9 @@ def build_templates(model: ObjectModel) -> ViewTemplates:
     bins = orientation_bin(theta)
     px = np.ascontiguousarray(pts[..., 0], dtype=np.float32)
     py = np.ascontiguousarray(pts[..., 1], dtype=np.float32)
-    bins8 = bins.astype(np.uint8)
+    # The kernels read each sample's class (outline, crease, interior) with
+    # its bin: each class is found at the true pose at its own rate.
+    bins8 = sample_codes(bins, training_view_sample_classes(model, pts, valid.sum(axis=1)))
     rows = np.arange(n_views)[:, None]
     return ViewTemplates(
         pts, theta, bins, valid, coarse, length, px, py, bins8,

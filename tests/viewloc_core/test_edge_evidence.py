@@ -9,6 +9,11 @@ from hypothesis import strategies as st
 
 from tests.viewloc_core.conftest import faint_noise
 from viewloc_core.edge_evidence import (
+    SAMPLE_ANY,
+    SAMPLE_CREASE,
+    SAMPLE_HIT_RATES,
+    SAMPLE_INTERIOR,
+    SAMPLE_OUTLINE,
     TRUE_HIT_RATE,
     ChanceRates,
     _log_ratios,
@@ -23,27 +28,44 @@ shares = st.floats(0.01, 0.99)
 
 
 @settings(max_examples=200, deadline=None)
-@given(rates, shares)
-def test_the_ratios_are_of_two_proper_distributions(edge, share):
-    """Weighted by the clutter's own probabilities, the ratios give the
-    object's, which sum to one; both models' shares are in (0, 1)."""
+@given(rates, shares, st.sampled_from(range(len(SAMPLE_HIT_RATES))))
+def test_the_ratios_are_of_two_proper_distributions(edge, share, sample_class):
+    """Weighted by the clutter's own probabilities, the ratios of each
+    sample class give the object's, which sum to one; both models' shares
+    are in (0, 1)."""
     chance = ChanceRates(np.full(ORIENTATION_BINS, edge), np.full(ORIENTATION_BINS, edge * share))
-    miss, weak, strong = _log_ratios(chance).T
+    table = _log_ratios(chance)
+    assert table.shape == (len(SAMPLE_HIT_RATES) * ORIENTATION_BINS, 3)
+    miss, weak, strong = table[sample_class * ORIENTATION_BINS].T
+    rate = SAMPLE_HIT_RATES[sample_class]
     clutter = np.array([edge * (1 - share), edge * share, 1 - edge])
-    object_probability = clutter * np.exp(np.array([weak[0], strong[0], miss[0]]))
+    object_probability = clutter * np.exp(np.array([weak, strong, miss]))
     assert np.all((object_probability > 0) & (object_probability < 1))
     assert abs(object_probability.sum() - 1.0) < 1e-9
     # A strong hit is worth more than a hit not told apart, a weak one less;
     # the object's hits are as often hits as before the split.
-    plain = np.log(TRUE_HIT_RATE / edge)
-    assert strong[0] > plain > weak[0]
-    assert abs(object_probability[:2].sum() - TRUE_HIT_RATE) < 1e-9
+    plain = np.log(rate / edge)
+    assert strong > plain > weak
+    assert abs(object_probability[:2].sum() - rate) < 1e-9
+
+
+def test_a_missing_outline_costs_more_than_a_missing_edge_inside():
+    """The outline is found at the true pose more often than anything else:
+    its miss is the strongest evidence against a hypothesis, its hit the
+    strongest for it; unclassified samples keep the one rate of before."""
+    chance = ChanceRates(np.full(ORIENTATION_BINS, 0.2), np.full(ORIENTATION_BINS, 0.05))
+    rows = _log_ratios(chance)[::ORIENTATION_BINS]
+    assert SAMPLE_HIT_RATES[SAMPLE_ANY] == TRUE_HIT_RATE
+    for other in (SAMPLE_INTERIOR, SAMPLE_CREASE, SAMPLE_ANY):
+        assert rows[SAMPLE_OUTLINE, MISS] < rows[other, MISS]
+        assert rows[SAMPLE_OUTLINE, WEAK_HIT] > rows[other, WEAK_HIT]
 
 
 @settings(max_examples=50, deadline=None)
 @given(rates)
 def test_the_split_vanishes_where_all_edges_are_strong_or_none(edge):
-    plain = np.log(TRUE_HIT_RATE / edge)
+    # Two bins per class here: each class's rows at its own rate.
+    plain = np.repeat(np.log(np.array(SAMPLE_HIT_RATES) / edge), 2)
     all_strong = _log_ratios(ChanceRates(np.full(2, edge), np.full(2, edge)))
     none_strong = _log_ratios(ChanceRates(np.full(2, edge), np.zeros(2)))
     np.testing.assert_allclose(all_strong[:, STRONG_HIT], plain, atol=1e-5)

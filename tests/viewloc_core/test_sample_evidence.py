@@ -79,3 +79,32 @@ def test_the_grid_gives_each_pair_what_lay_over_gives_it(seed):
                               np.tile(views, n_sims), c[k], s[k], x[k], y[k], turn[k],
                               log_ratio)
     np.testing.assert_array_equal(grid, pairs)
+
+
+def test_a_samples_class_picks_its_rows_of_the_table():
+    """Codes ``class * B + bin``: two samples of bin 3 on one edge, of
+    classes 0 and 1, read rows 3 and B + 3; turned, each keeps its class."""
+    bits = np.zeros((20, 30), np.uint16)
+    bits[5, 10] = 1 << 3
+    wanted = wanted_bits(np.arange(ORIENTATION_BINS)).astype(np.uint16)
+    px = np.array([[3.0, 3.0, 5.0]], np.float32)
+    py = np.array([[2.0, 2.0, 2.0]], np.float32)
+    codes = np.array([[3, ORIENTATION_BINS + 3, ORIENTATION_BINS + 3]], np.uint8)
+    valid = np.ones((1, 3), bool)
+    rows = np.arange(2 * ORIENTATION_BINS, dtype=np.float64)
+    log_ratio = np.stack([-rows - 0.5, rows + 1.0, rows + 1.25], axis=1)
+    one = np.ones(1, np.float32)
+    llr, hits, _, best = lay_over(bits, np.zeros_like(bits), wanted, px, py, codes, valid,
+                                  np.zeros(1, np.int64), 2 * one, 0 * one, 4 * one, one,
+                                  np.zeros(1, np.uint8), log_ratio)
+    b = ORIENTATION_BINS
+    assert list(hits) == [2]
+    assert llr[0] == log_ratio[3, 1] + log_ratio[b + 3, 1] + log_ratio[b + 3, 0]
+    assert best[0] == log_ratio[3, 2] + 2 * log_ratio[b + 3, 2]
+    # A turn of 15 bins (bin 3 -> 2) stays in each sample's own rows.
+    turned, _, _, _ = lay_over(bits, np.zeros_like(bits), wanted, px, py, codes, valid,
+                               np.zeros(1, np.int64), 2 * one, 0 * one, 4 * one, one,
+                               np.full(1, b - 1, np.uint8), log_ratio)
+    hit = bool(wanted[2] & bits[5, 10])
+    assert turned[0] == (log_ratio[2, int(hit)] + log_ratio[b + 2, int(hit)]
+                         + log_ratio[b + 2, 0])

@@ -106,6 +106,7 @@ def test_scores_match_a_sample_by_sample_count(renderer, bracket_mesh, bracket_m
     image, sim_true, _ = _scene(renderer, bracket_mesh, model, 5, 20.0, clutter=4)
     feats = extract_features(image)
     chance = chance_rates(feats)
+    # Rows per sample class (outline, crease, interior) and bin.
     log_miss, log_hit, log_strong_hit = _log_ratios(chance).T
     # The clutter of this scene has strong edges and weak ones, so both
     # kinds of hit are counted below.
@@ -125,7 +126,8 @@ def test_scores_match_a_sample_by_sample_count(renderer, bracket_mesh, bracket_m
         turn = int(np.floor(np.mod(s[2], np.pi) / np.pi * ORIENTATION_BINS + 0.5))
         total = found_all = 0.0
         hits = 0
-        for p, b0 in zip(pts, templates.bins[t][templates.valid[t]], strict=True):
+        classes = templates.bins8[t][templates.valid[t]] // ORIENTATION_BINS
+        for p, b0, k in zip(pts, templates.bins[t][templates.valid[t]], classes, strict=True):
             u = int(np.rint(np.float32(c) * np.float32(p[0]) - np.float32(sn) * np.float32(p[1])
                             + np.float32(s[0])))
             v = int(np.rint(np.float32(sn) * np.float32(p[0]) + np.float32(c) * np.float32(p[1])
@@ -137,8 +139,9 @@ def test_scores_match_a_sample_by_sample_count(renderer, bracket_mesh, bracket_m
             hit = bool(int(feats.orientation_bits[v, u]) & wanted)
             strong = bool(int(feats.strong_bits[v, u]) & wanted)
             hits += hit
-            total += (log_strong_hit[b] if strong else log_hit[b]) if hit else log_miss[b]
-            found_all += max(log_hit[b], log_strong_hit[b])
+            r = int(k) * ORIENTATION_BINS + b
+            total += (log_strong_hit[r] if strong else log_hit[r]) if hit else log_miss[r]
+            found_all += max(log_hit[r], log_strong_hit[r])
         length = templates.length_px[t] * s[3] ** OUTLINE_SCALE_EXPONENT
         assert llr[i] == pytest.approx(total * length, rel=1e-9, abs=1e-9)
         assert frac[i] == pytest.approx(hits / len(pts))
