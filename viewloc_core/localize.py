@@ -440,8 +440,8 @@ def prepare(model: ObjectModel) -> None:
     samples and near-symmetries), so that the first localization of the model
     is as fast as the rest.
 
-    Without this the first request pays for them: about 0.3-0.5 s for the
-    bench parts. The results are cached per model object while it lives, as
+    Without this the first request pays for them: about 0.3-1.0 s for the
+    bench parts (0.2-0.4 s of it the templates' sample classes). The results are cached per model object while it lives, as
     when a localization builds them.
     """
     model_index(model)
