@@ -441,8 +441,9 @@ def prepare(model: ObjectModel) -> None:
     is as fast as the rest.
 
     Without this the first request pays for them: about 0.3-1.0 s for the
-    bench parts (0.2-0.4 s of it the templates' sample classes). The results are cached per model object while it lives, as
-    when a localization builds them.
+    bench parts (0.2-0.4 s of it the templates' sample classes). The results
+    are cached per model object while it lives, as when a localization builds
+    them.
     """
     model_index(model)
     view_templates(model)
