@@ -47,8 +47,8 @@ TRUE_HIT_RATE = 0.8
 
 #: Classes of template samples (:mod:`viewloc_core.sample_classes`): not
 #: known (the alignment's model views, parts learned from photos), on the
-#: part's outline, inside it on no crease (shading, colour, texture), on a
-#: crease of the mesh.
+#: part's outline, inside it on no crease (shading, colour, texture, inner
+#: occluding contours), on a crease of the mesh.
 SAMPLE_ANY, SAMPLE_OUTLINE, SAMPLE_INTERIOR, SAMPLE_CREASE = 0, 1, 2, 3
 
 #: Rate at which the true view's samples of each class find their edge: Pope

@@ -14,8 +14,8 @@ the view's occluding contour and creases are projected into the training
 view, and a sample closer than :data:`CLASS_REACH_PX` to the former is outline,
 else closer than that to the latter a crease, else interior (inner occluding
 contours included: like shading, they are edges only where the part's two
-sides differ in brightness). Models without a
-contour model (learned from photos) keep every sample unclassified
+sides differ in brightness). Models without a contour model (learned from
+photos) keep every sample unclassified
 (:data:`viewloc_core.edge_evidence.SAMPLE_ANY`).
 """
 
