@@ -28,14 +28,15 @@ the part a little.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import NDArray
 
 from viewloc_core.both_cores import over_halves
-from viewloc_core.features import ORIENTATION_BINS, ImageFeatures, orientation_turn, wanted_bits
-from viewloc_core.sample_evidence import lay_over, lay_over_grid
+from viewloc_core.features import ORIENTATION_BINS, ImageFeatures, wanted_bits
+from viewloc_core.sample_evidence import lay_over, lay_over_grid, similarity_terms
 
 F64 = NDArray[np.float64]
 
@@ -131,7 +132,8 @@ def outline_samples(length_px: F64, scale: F64) -> F64:
     return length_px * scale ** OUTLINE_SCALE_EXPONENT
 
 
-class ChanceRates(NamedTuple):
+@dataclass(frozen=True, eq=False)
+class ChanceRates:
     """How often a template sample finds an edge in this image by chance:
     the clutter model of the score.
 
@@ -146,6 +148,14 @@ class ChanceRates(NamedTuple):
 
     edge: F64
     strong_edge: F64
+
+    @cached_property
+    def log_ratio(self) -> F64:
+        """The scoring table of these rates (:func:`_log_ratios`), built on
+        first use: every kernel call of an image reads it (a localization
+        makes a dozen or more, and building it cost about as much as a
+        small call's scoring)."""
+        return _log_ratios(self)
 
 
 def chance_rates(feats: ImageFeatures) -> ChanceRates:
@@ -211,12 +221,9 @@ def _kernel_similarities(sims: F64) -> tuple[NDArray[np.float32], NDArray[np.flo
                                               NDArray[np.uint8]]:
     """``s cos α``, ``s sin α``, x, y (float32, the precision the positions
     were tuned in) and the orientation turn of (H, 4) similarities, as the
-    kernels of :mod:`viewloc_core.sample_evidence` take them."""
-    cos_scale = (sims[:, 3] * np.cos(sims[:, 2])).astype(np.float32)
-    sin_scale = (sims[:, 3] * np.sin(sims[:, 2])).astype(np.float32)
-    # The samples' orientation bins turn with the in-plane angle.
-    turn = orientation_turn(sims[:, 2]).astype(np.uint8)
-    return cos_scale, sin_scale, sims[:, 0].astype(np.float32), sims[:, 1].astype(np.float32), turn
+    kernels of :mod:`viewloc_core.sample_evidence` take them (the samples'
+    orientation bins turn with the in-plane angle)."""
+    return similarity_terms(np.ascontiguousarray(sims, np.float64), ORIENTATION_BINS)
 
 
 def lay_over_templates(
@@ -244,7 +251,7 @@ def lay_over_templates(
         Per hypothesis, as :func:`viewloc_core.sample_evidence.lay_over`
         returns them (samples outside the image add nothing).
     """
-    log_ratio = _log_ratios(chance)
+    log_ratio = chance.log_ratio
     cos_scale, sin_scale, x, y, turn = _kernel_similarities(sims)
     rows = np.ascontiguousarray(rows, np.int64)
 
@@ -281,7 +288,7 @@ def lay_over_grid_of_templates(
     (S * V,) float64
         Pair ``(s, j)`` at ``s * V + j``.
     """
-    log_ratio = _log_ratios(chance)
+    log_ratio = chance.log_ratio
     cos_scale, sin_scale, x, y, turn = _kernel_similarities(sims)
     views = np.ascontiguousarray(views, np.int64)
 

@@ -15,7 +15,10 @@ a pass over all of them histograms the strengths above that estimate, which
 fixes the cut exactly; a last pass writes out only the pairings above the
 cut. Passes above an estimate skip every image feature that is weaker than
 it with any model feature, and the model features are sorted by their first
-attribute, so only those within the gate on it are visited.
+attribute, so only those within the gate on it are visited. Each pass is
+shared by the two cores: the image features are cut in two runs of about
+equal work, whose pairings laid end to end are those of one pass over all
+(:func:`_halves`).
 
 A pairing's strength is ``image_term[i] + model_term[j] - d² / 2``, with
 ``d`` the distance of the attributes in units of their pairing standard
@@ -31,6 +34,8 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
+from viewloc_core.both_cores import each_on_both
+
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 
@@ -44,6 +49,12 @@ HISTOGRAM_BINS = 4096
 #: the full count rarely falls short and needs another pass).
 SAMPLE_STRIDE = 8
 SAMPLE_MARGIN = 1.5
+
+#: Passes that visit at least this many (image, model) feature pairs are
+#: shared by the two cores (:func:`_halves`); handing a run to the other
+#: thread costs tens of microseconds, a visit a few nanoseconds. A
+#: 400x300 textured photo visits millions.
+MIN_SPLIT_VISITS = 100_000
 
 
 @dataclass(frozen=True, slots=True)
@@ -75,22 +86,23 @@ class PairingSet:
 @njit(cache=True, nogil=True)
 def _pass(image_z: F64, model_z: F64, image_term: F64, model_term: F64, gate: float,
           lo: float, hi: float, hist: I64, min_bin: int, out_i: I64, out_j: I64,
-          out_strength: F64, n_out: int, image_stride: int) -> int:  # pragma: no cover
+          out_strength: F64, n_out: int, image_start: int, image_stop: int,
+          image_stride: int) -> int:  # pragma: no cover
     """One pass over the pairs within the gate and at least ``lo`` strong.
 
     Counts their strengths in ``hist`` (bins spanning ``lo`` .. ``hi``, the
     last one holding everything above) and writes those falling in
     ``min_bin`` or above from row ``n_out`` on (none when ``min_bin`` is
     past the last bin); returns the next free row. Only every
-    ``image_stride``-th image feature is paired. ``model_z`` is sorted by
-    its first column.
+    ``image_stride``-th image feature of ``image_start:image_stop`` is
+    paired. ``model_z`` is sorted by its first column.
     """
     n_bins = hist.shape[0]
     inv_width = n_bins / max(hi - lo, 1e-9)
     gate_sq = gate * gate
     dims = image_z.shape[1]
     best_model = model_term.max()
-    for i in range(0, image_z.shape[0], image_stride):
+    for i in range(image_start, image_stop, image_stride):
         a = image_term[i]
         if a + best_model < lo:
             continue  # weaker than lo with any model feature
@@ -115,15 +127,64 @@ def _pass(image_z: F64, model_z: F64, image_term: F64, model_term: F64, gate: fl
     return n_out
 
 
-def _count(sets: list[PairingSet], gate: float, lo: float, hi: float,
-           image_stride: int = 1) -> I64:
-    """Histogram of the strengths at least ``lo`` (bins up to ``hi``)."""
-    hist = np.zeros(HISTOGRAM_BINS, np.int64)
+#: A part of the image features of all sets: ``(set index, start, stop)``.
+Span = tuple[int, int, int]
+
+
+def _halves(sets: list[PairingSet], gate: float, lo: float = -np.inf) -> list[list[Span]]:
+    """The sets' image features in two runs of about equal work, one per
+    core; one run when there is too little work to share
+    (:data:`MIN_SPLIT_VISITS`).
+
+    The work of an image feature is the number of model features within
+    the gate of its first attribute (what a pass visits), none when it is
+    weaker than ``lo`` with any of them (a pass skips it). The first run
+    ends where the second begins, in the order of one pass over all, so
+    the runs' pairings laid end to end are that pass's.
+    """
+    work = [(np.searchsorted(s.model_z[:, 0], s.image_z[:, 0] + gate, side="right")
+             - np.searchsorted(s.model_z[:, 0], s.image_z[:, 0] - gate))
+            * (s.image_term + s.model_term.max() >= lo) for s in sets]
+    total = int(sum(int(w.sum()) for w in work))
+    if total < MIN_SPLIT_VISITS:
+        return [[(k, 0, len(s.image_rows)) for k, s in enumerate(sets)]]
+    cut = int(np.searchsorted(np.cumsum(np.concatenate(work)), total / 2))
+    first: list[Span] = []
+    second: list[Span] = []
+    offset = 0
+    for k, s in enumerate(sets):
+        n = len(s.image_rows)
+        m = min(max(cut - offset, 0), n)
+        if m > 0:
+            first.append((k, 0, m))
+        if m < n:
+            second.append((k, m, n))
+        offset += n
+    return [first, second]
+
+
+def _first_of_stride(start: int, stride: int) -> int:
+    """The first multiple of ``stride`` at or after ``start``: a run that
+    begins inside a set samples the features one pass over all would."""
+    return start + (-start) % stride
+
+
+def _count(sets: list[PairingSet], runs: list[list[Span]], gate: float, lo: float, hi: float,
+           image_stride: int = 1) -> list[I64]:
+    """Histogram of the strengths at least ``lo`` (bins up to ``hi``) of
+    each run, the runs on both cores."""
     none = np.zeros(0, np.int64)
-    for s in sets:
-        _pass(s.image_z, s.model_z, s.image_term, s.model_term, gate, lo, hi, hist,
-              HISTOGRAM_BINS, none, none, np.zeros(0), 0, image_stride)
-    return hist
+
+    def count(run: list[Span]) -> I64:
+        hist = np.zeros(HISTOGRAM_BINS, np.int64)
+        for k, start, stop in run:
+            s = sets[k]
+            _pass(s.image_z, s.model_z, s.image_term, s.model_term, gate, lo, hi, hist,
+                  HISTOGRAM_BINS, none, none, np.zeros(0), 0,
+                  _first_of_stride(start, image_stride), stop, image_stride)
+        return hist
+
+    return each_on_both(count, runs)
 
 
 def _first_kept_bin(hist: I64, wanted: float) -> int:
@@ -151,7 +212,7 @@ def strongest_pairings(sets: list[PairingSet], gate: float, max_pairings: int
     -------
     image_rows, model_rows : (N,) int64
         The pairings, ``N <= max_pairings``, in no particular order (ties at
-        the cut broken arbitrarily).
+        the cut broken arbitrarily, but the same on every call).
     """
     sets = [_sorted(s) for s in sets if len(s.image_rows) and len(s.model_rows)]
     if not sets:
@@ -159,34 +220,47 @@ def strongest_pairings(sets: list[PairingSet], gate: float, max_pairings: int
         return empty, empty
     bottom = min(float(s.image_term.min() + s.model_term.min()) for s in sets) - 0.5 * gate**2
     top = max(float(s.image_term.max() + s.model_term.max()) for s in sets)
+    runs = _halves(sets, gate)
     # Where the cut will lie, from a sample of the image features: an image
     # feature weaker than it with every model feature is then passed over.
-    sample = _count(sets, gate, bottom, top, SAMPLE_STRIDE)
+    sample = np.sum(_count(sets, runs, gate, bottom, top, SAMPLE_STRIDE), axis=0)
     sampled = sum(len(range(0, len(s.image_rows), SAMPLE_STRIDE)) for s in sets)
     share = sampled / sum(len(s.image_rows) for s in sets)
     lo = bottom + (_first_kept_bin(sample, SAMPLE_MARGIN * share * max_pairings)
                    * (top - bottom) / HISTOGRAM_BINS)
     while True:
-        hist = _count(sets, gate, lo, top)
+        runs = _halves(sets, gate, lo)
+        run_hists = _count(sets, runs, gate, lo, top)
+        hist = np.sum(run_hists, axis=0)
         if hist.sum() >= max_pairings or lo <= bottom:
             break
         lo = max(bottom, lo - (top - lo))  # the sample misled: reach twice as far
     min_bin = _first_kept_bin(hist, max_pairings)
-    n_kept = int(hist[min_bin:].sum())
-    out_i = np.empty(n_kept, np.int64)
-    out_j = np.empty(n_kept, np.int64)
-    strength = np.empty(n_kept, np.float64)
-    image_rows, model_rows = [], []
-    n_out = 0
-    for s in sets:
-        start = n_out
-        n_out = _pass(s.image_z, s.model_z, s.image_term, s.model_term, gate, lo, top,
-                      np.zeros(HISTOGRAM_BINS, np.int64), min_bin, out_i, out_j, strength,
-                      n_out, 1)
-        image_rows.append(s.image_rows[out_i[start:n_out]])
-        model_rows.append(s.model_rows[out_j[start:n_out]])
-    rows_i, rows_j = np.concatenate(image_rows), np.concatenate(model_rows)
-    if n_out > max_pairings:
+
+    def write(run: list[Span], run_hist: I64) -> tuple[I64, I64, F64]:
+        """The run's pairings in the kept bins (as many as its histogram
+        counts there), as feature rows, and their strengths."""
+        n_kept = int(run_hist[min_bin:].sum())
+        out_i = np.empty(n_kept, np.int64)
+        out_j = np.empty(n_kept, np.int64)
+        strength = np.empty(n_kept, np.float64)
+        image_rows, model_rows = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
+        n_out = 0
+        for k, start, stop in run:
+            s = sets[k]
+            begin = n_out
+            n_out = _pass(s.image_z, s.model_z, s.image_term, s.model_term, gate, lo, top,
+                          np.zeros(HISTOGRAM_BINS, np.int64), min_bin, out_i, out_j, strength,
+                          n_out, start, stop, 1)
+            image_rows.append(s.image_rows[out_i[begin:n_out]])
+            model_rows.append(s.model_rows[out_j[begin:n_out]])
+        return np.concatenate(image_rows), np.concatenate(model_rows), strength[:n_out]
+
+    parts = each_on_both(lambda r: write(*r), list(zip(runs, run_hists, strict=True)))
+    rows_i = np.concatenate([p[0] for p in parts])
+    rows_j = np.concatenate([p[1] for p in parts])
+    strength = np.concatenate([p[2] for p in parts])
+    if len(rows_i) > max_pairings:
         keep = np.argpartition(-strength, max_pairings)[:max_pairings]
         rows_i, rows_j = rows_i[keep], rows_j[keep]
     return rows_i, rows_j

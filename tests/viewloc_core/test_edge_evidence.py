@@ -104,3 +104,10 @@ def test_a_contrasted_part_gains_on_faint_texture():
     assert unsplit[1] < 0
     # The square's lead over the texture grows by a tenth or more.
     assert split[0] - split[1] > 1.1 * (unsplit[0] - unsplit[1])
+
+
+def test_an_images_table_is_built_once_and_is_the_table_of_its_rates():
+    chance = ChanceRates(np.full(ORIENTATION_BINS, 0.2), np.full(ORIENTATION_BINS, 0.05))
+    table = chance.log_ratio
+    assert chance.log_ratio is table  # every kernel call of the image reads this one
+    np.testing.assert_array_equal(table, _log_ratios(chance))

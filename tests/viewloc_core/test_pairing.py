@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
+
 import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from viewloc_core.pairing import SAMPLE_STRIDE, PairingSet, strongest_pairings
+from viewloc_core import pairing
+from viewloc_core.pairing import SAMPLE_STRIDE, PairingSet, _halves, _sorted, strongest_pairings
 
 
 def _brute_force(sets: list[PairingSet], gate: float, max_pairings: int) -> set[tuple[int, int]]:
@@ -78,3 +82,46 @@ def test_undefined_kinds_and_empty_sides_pair_with_nothing():
     assert len(image_rows) == len(model_rows) == 0
     image_rows, _ = strongest_pairings([empty, full], 2.5, 100)
     assert set(image_rows.tolist()) <= set(full.image_rows.tolist())
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(1, 3000), st.integers(1, 3))
+def test_two_runs_give_the_pairings_of_one_in_the_same_order(seed, max_pairings, n_kinds):
+    """Shared by the two cores, the passes give exactly what one pass over
+    all features gives, pairing for pairing and in the same order (the
+    alignment's later sorts break ties by it)."""
+    rng = np.random.default_rng(seed)
+    sets = [_random_set(rng, int(rng.integers(0, 120)), int(rng.integers(0, 150)), 10000 * k)
+            for k in range(n_kinds)]
+    with _split_above(10**12):
+        one = strongest_pairings(sets, 2.5, max_pairings)
+    with _split_above(0):
+        two = strongest_pairings(sets, 2.5, max_pairings)
+    assert np.array_equal(one[0], two[0]) and np.array_equal(one[1], two[1])
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(1, 4))
+def test_the_two_runs_cover_every_feature_once_in_order(seed, n_kinds):
+    rng = np.random.default_rng(seed)
+    sets = [_sorted(_random_set(rng, int(rng.integers(1, 80)), int(rng.integers(1, 90)),
+                                10000 * k)) for k in range(n_kinds)]
+    with _split_above(0):
+        runs = _halves(sets, 2.5)
+    laid_end_to_end = [(k, i) for run in runs for k, start, stop in run
+                       for i in range(start, stop)]
+    assert laid_end_to_end == [(k, i) for k, s in enumerate(sets)
+                               for i in range(len(s.image_rows))]
+    with _split_above(10**12):
+        assert len(_halves(sets, 2.5)) == 1
+
+
+@contextmanager
+def _split_above(visits: int) -> Iterator[None]:
+    """:data:`MIN_SPLIT_VISITS` set to ``visits`` for a while."""
+    kept = pairing.MIN_SPLIT_VISITS
+    pairing.MIN_SPLIT_VISITS = visits
+    try:
+        yield
+    finally:
+        pairing.MIN_SPLIT_VISITS = kept

@@ -6,8 +6,8 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from viewloc_core.features import ORIENTATION_BINS, wanted_bits
-from viewloc_core.sample_evidence import lay_over, lay_over_grid
+from viewloc_core.features import ORIENTATION_BINS, orientation_turn, wanted_bits
+from viewloc_core.sample_evidence import lay_over, lay_over_grid, similarity_terms
 
 
 def test_hits_misses_outside_and_padding_each_count_as_they_should():
@@ -108,3 +108,26 @@ def test_a_samples_class_picks_its_rows_of_the_table():
     hit = bool(wanted[2] & bits[5, 10])
     assert turned[0] == (log_ratio[2, int(hit)] + log_ratio[b + 2, int(hit)]
                          + log_ratio[b + 2, 0])
+
+
+angles = st.one_of(
+    st.floats(-20.0, 20.0, allow_nan=False),
+    # Exactly on the boundaries between turns, where rounding decides.
+    st.builds(lambda k: (k + 0.5) * np.pi / ORIENTATION_BINS, st.integers(-64, 64)),
+)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.tuples(st.floats(-1e4, 1e4), st.floats(-1e4, 1e4), angles,
+                          st.floats(1e-3, 50.0)), min_size=0, max_size=30))
+def test_the_similarity_terms_are_numpys_to_the_bit(rows):
+    """The compiled pass gives the kernels exactly what the array
+    expressions gave (positions round to pixels on these values)."""
+    sims = np.array(rows, np.float64).reshape(-1, 4)
+    cos_scale, sin_scale, x, y, turn = similarity_terms(sims, ORIENTATION_BINS)
+    assert np.array_equal(cos_scale, (sims[:, 3] * np.cos(sims[:, 2])).astype(np.float32))
+    assert np.array_equal(sin_scale, (sims[:, 3] * np.sin(sims[:, 2])).astype(np.float32))
+    assert np.array_equal(x, sims[:, 0].astype(np.float32))
+    assert np.array_equal(y, sims[:, 1].astype(np.float32))
+    assert np.array_equal(turn, orientation_turn(sims[:, 2]).astype(np.uint8))
+    assert turn.dtype == np.uint8 and np.all(turn <= ORIENTATION_BINS)
