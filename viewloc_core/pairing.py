@@ -131,20 +131,25 @@ def _pass(image_z: F64, model_z: F64, image_term: F64, model_term: F64, gate: fl
 Span = tuple[int, int, int]
 
 
-def _halves(sets: list[PairingSet], gate: float, lo: float = -np.inf) -> list[list[Span]]:
+def _visits(sets: list[PairingSet], gate: float) -> list[I64]:
+    """The model features within the gate of each image feature's first
+    attribute, per set: what a pass visits for it."""
+    return [np.searchsorted(s.model_z[:, 0], s.image_z[:, 0] + gate, side="right")
+            - np.searchsorted(s.model_z[:, 0], s.image_z[:, 0] - gate) for s in sets]
+
+
+def _halves(sets: list[PairingSet], visits: list[I64], lo: float = -np.inf) -> list[list[Span]]:
     """The sets' image features in two runs of about equal work, one per
     core; one run when there is too little work to share
     (:data:`MIN_SPLIT_VISITS`).
 
-    The work of an image feature is the number of model features within
-    the gate of its first attribute (what a pass visits), none when it is
-    weaker than ``lo`` with any of them (a pass skips it). The first run
-    ends where the second begins, in the order of one pass over all, so
-    the runs' pairings laid end to end are that pass's.
+    The work of an image feature is its ``visits`` (:func:`_visits`), none
+    when it is weaker than ``lo`` with any model feature (a pass skips it).
+    The first run ends where the second begins, in the order of one pass
+    over all, so the runs' pairings laid end to end are that pass's.
     """
-    work = [(np.searchsorted(s.model_z[:, 0], s.image_z[:, 0] + gate, side="right")
-             - np.searchsorted(s.model_z[:, 0], s.image_z[:, 0] - gate))
-            * (s.image_term + s.model_term.max() >= lo) for s in sets]
+    work = [v * (s.image_term + s.model_term.max() >= lo) for s, v in zip(sets, visits,
+                                                                          strict=True)]
     total = int(sum(int(w.sum()) for w in work))
     if total < MIN_SPLIT_VISITS:
         return [[(k, 0, len(s.image_rows)) for k, s in enumerate(sets)]]
@@ -220,7 +225,8 @@ def strongest_pairings(sets: list[PairingSet], gate: float, max_pairings: int
         return empty, empty
     bottom = min(float(s.image_term.min() + s.model_term.min()) for s in sets) - 0.5 * gate**2
     top = max(float(s.image_term.max() + s.model_term.max()) for s in sets)
-    runs = _halves(sets, gate)
+    visits = _visits(sets, gate)
+    runs = _halves(sets, visits)
     # Where the cut will lie, from a sample of the image features: an image
     # feature weaker than it with every model feature is then passed over.
     sample = np.sum(_count(sets, runs, gate, bottom, top, SAMPLE_STRIDE), axis=0)
@@ -229,7 +235,7 @@ def strongest_pairings(sets: list[PairingSet], gate: float, max_pairings: int
     lo = bottom + (_first_kept_bin(sample, SAMPLE_MARGIN * share * max_pairings)
                    * (top - bottom) / HISTOGRAM_BINS)
     while True:
-        runs = _halves(sets, gate, lo)
+        runs = _halves(sets, visits, lo)
         run_hists = _count(sets, runs, gate, lo, top)
         hist = np.sum(run_hists, axis=0)
         if hist.sum() >= max_pairings or lo <= bottom:

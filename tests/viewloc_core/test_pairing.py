@@ -10,7 +10,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from viewloc_core import pairing
-from viewloc_core.pairing import SAMPLE_STRIDE, PairingSet, _halves, _sorted, strongest_pairings
+from viewloc_core.pairing import (
+    SAMPLE_STRIDE,
+    PairingSet,
+    _halves,
+    _sorted,
+    _visits,
+    strongest_pairings,
+)
 
 
 def _brute_force(sets: list[PairingSet], gate: float, max_pairings: int) -> set[tuple[int, int]]:
@@ -107,13 +114,13 @@ def test_the_two_runs_cover_every_feature_once_in_order(seed, n_kinds):
     sets = [_sorted(_random_set(rng, int(rng.integers(1, 80)), int(rng.integers(1, 90)),
                                 10000 * k)) for k in range(n_kinds)]
     with _split_above(0):
-        runs = _halves(sets, 2.5)
+        runs = _halves(sets, _visits(sets, 2.5))
     laid_end_to_end = [(k, i) for run in runs for k, start, stop in run
                        for i in range(start, stop)]
     assert laid_end_to_end == [(k, i) for k, s in enumerate(sets)
                                for i in range(len(s.image_rows))]
     with _split_above(10**12):
-        assert len(_halves(sets, 2.5)) == 1
+        assert len(_halves(sets, _visits(sets, 2.5))) == 1
 
 
 @contextmanager
