@@ -148,8 +148,8 @@ def _halves(sets: list[PairingSet], visits: list[I64], lo: float = -np.inf) -> l
     The first run ends where the second begins, in the order of one pass
     over all, so the runs' pairings laid end to end are that pass's.
     """
-    work = [v * (s.image_term + s.model_term.max() >= lo) for s, v in zip(sets, visits,
-                                                                          strict=True)]
+    work = [v * (s.image_term + s.model_term.max() >= lo)
+            for s, v in zip(sets, visits, strict=True)]
     total = int(sum(int(w.sum()) for w in work))
     if total < MIN_SPLIT_VISITS:
         return [[(k, 0, len(s.image_rows)) for k, s in enumerate(sets)]]
