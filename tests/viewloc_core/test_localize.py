@@ -377,6 +377,8 @@ def test_a_near_symmetric_parts_best_other_start_gets_the_full_fit(
 
     monkeypatch.setattr(localize_module, "refine_pose", refine)
     monkeypatch.setattr(NearSymmetries, "twins", lambda self, pose: [])
+    # One start per view: the other view is not also tried at other depths.
+    monkeypatch.setattr(localize_module, "RIVAL_SCALE_FACTORS", ())
     start = _pose_centred(model, first_view, sim, camera)
     first = RefinementResult(start, True, 10, 0.5, 0.90)
     result, view, _, _ = _other_sides(model, loc, 1.0, camera, None, None, Shading(),
@@ -422,6 +424,51 @@ def test_a_winning_rivals_own_twin_is_tried_in_the_next_round(bracket_model, mon
     assert view == other_view
     expected = truth if rounds == 2 else runner_up
     assert rotation_angle_deg(result.pose.R_m2c, expected.R_m2c) < 1e-6
+
+
+@pytest.mark.parametrize("factors", [(), localize_module.RIVAL_SCALE_FACTORS])
+def test_a_rival_view_is_also_tried_nearer_and_farther(bracket_model, monkeypatch, factors):
+    # The view search finds the runner-up view (the truth's) a few % off in
+    # scale, farther than a short fit pulls it in depth. Refinement leaves
+    # every pose where it is; the rank says how near a pose is to the truth,
+    # the runner-up's view at the first scale factor's depth. The first fit
+    # ranks between the truth and the runner-up at its searched depth.
+    model = bracket_model
+    camera, first_view, other_view, sim, loc = _two_views_at_one_location(model)
+    monkeypatch.setattr(localize_module, "RIVAL_SCALE_FACTORS", factors)
+    truth_factor = localize_module.RIVAL_SCALE_FACTORS[0] if factors else 0.88
+    truth = _pose_centred(model, other_view, replace(sim, scale=sim.scale * truth_factor),
+                          camera)
+
+    def refine(edges, camera_, start, contour, options):
+        return RefinementResult(start, True, 3, 0.5, 0.9)
+
+    class Shading:
+        near = NearSymmetries(np.zeros((0, 4, 4)), np.ones(0))
+
+        def rank(self, camera_, result):
+            R, t = result.pose.R_m2c, result.pose.t_m2c
+            if rotation_angle_deg(R, truth.R_m2c) > 1.0:
+                return 0.8
+            return 1.0 if abs(t[2] - truth.t_m2c[2]) < 1e-6 * truth.t_m2c[2] else 0.5
+
+    monkeypatch.setattr(localize_module, "refine_pose", refine)
+    monkeypatch.setattr(NearSymmetries, "twins", lambda self, pose: [])
+    first_pose = _pose_centred(model, first_view, sim, camera)
+    first = RefinementResult(first_pose, True, 10, 0.5, 0.9)
+    result, view, similarity, start = _other_sides(model, loc, 1.0, camera, None, None,
+                                                   Shading(), first_view, sim, first_pose,
+                                                   first, _FitOptions())
+    if factors:
+        assert view == other_view
+        assert similarity.scale == pytest.approx(sim.scale * truth_factor)
+        # Nearer or farther, the start keeps its image position and view.
+        assert np.allclose(camera.project(start.t_m2c[None]),
+                           camera.project(first_pose.t_m2c[None]))
+        assert rotation_angle_deg(result.pose.R_m2c, truth.R_m2c) < 1e-6
+        assert result.pose.t_m2c[2] > first_pose.t_m2c[2]
+    else:
+        assert (view, result.pose) == (first_view, first_pose)
 
 
 def test_a_near_symmetric_part_gets_more_view_candidates(bracket_model):
