@@ -120,11 +120,8 @@ def points_mask(uv: NDArray[np.floating], x0: int, y0: int,
                 shape: tuple[int, int]) -> NDArray[np.uint8]:
     """A (h, w) uint8 box at pixel ``(x0, y0)`` with 1 at the pixel of each of
     the (N, 2) image points ``uv`` that falls inside it, 0 elsewhere."""
-    out = np.zeros(shape, np.uint8)
-    ij = np.round(np.asarray(uv, np.float64) - (x0, y0)).astype(np.int64)
-    keep = (ij[:, 0] >= 0) & (ij[:, 0] < shape[1]) & (ij[:, 1] >= 0) & (ij[:, 1] < shape[0])
-    out[ij[keep, 1], ij[keep, 0]] = 1
-    return out
+    return shading_kernels.points_mask(np.ascontiguousarray(uv, np.float64).reshape(-1, 2),
+                                       int(x0), int(y0), int(shape[0]), int(shape[1]))
 
 
 def silhouette_mask(uv: NDArray[np.floating], x0: int, y0: int, shape: tuple[int, int],

@@ -1,5 +1,6 @@
 """The shading agreement's two steps, compiled: which surface samples the
-camera sees, and the robust spherical-harmonics fit of their intensities.
+camera sees, and the robust spherical-harmonics fit of their intensities;
+and the mask of the pixels projected points fall on.
 
 :func:`viewloc_core.shading.shading_agreement` judges every rival start of
 a fit (:func:`viewloc_core.localize`: 10-20 calls per image on a part with
@@ -185,6 +186,28 @@ def explained_variance(intensity: F64, normals_cam: F64,
     return min(max(1.0 - (weights @ (residual ** 2)) / spread, 0.0), 1.0)
 
 
+@njit(cache=True, nogil=True)
+def points_mask(uv: F64, x0: int, y0: int, height: int,
+                width: int) -> NDArray[np.uint8]:  # pragma: no cover - compiled
+    """A (height, width) uint8 box at pixel ``(x0, y0)`` with 1 at the pixel
+    each of the (N, 2) image points ``uv`` rounds to (half to even, as
+    numpy rounds) that falls inside it, 0 elsewhere; points that are not
+    finite fall nowhere.
+
+    Every rival fit's ranking draws its silhouette and its contour this way
+    (:mod:`viewloc_core.interior_edges`): in array form six numpy calls on
+    2000 points, about 0.06 ms each time.
+    """
+    out = np.zeros((height, width), np.uint8)
+    for i in range(uv.shape[0]):
+        u = np.rint(uv[i, 0] - x0)
+        v = np.rint(uv[i, 1] - y0)
+        # False for NaN as well.
+        if 0.0 <= u < width and 0.0 <= v < height:
+            out[int(v), int(u)] = 1
+    return out
+
+
 def warm_up() -> None:
     """Compile (or load from numba's cache) for the types the shading passes."""
     rng = np.random.default_rng(0)
@@ -194,3 +217,4 @@ def warm_up() -> None:
                     np.array([500.0, 500.0, 320.0, 240.0]), np.zeros(8), False, 640, 480, 1.0,
                     0.3)
     explained_variance(rng.random(60), normals, 4)
+    points_mask(rng.random((5, 2)), 0, 0, 2, 3)

@@ -186,6 +186,28 @@ def test_points_mask_marks_the_points_inside_its_box_only():
     assert set(zip(*np.nonzero(mask), strict=True)) == {(2, 2), (0, 0)}
 
 
+coordinates = st.one_of(
+    st.floats(-30.0, 60.0, allow_nan=False),
+    # Halfway between pixels, where the rounding (half to even) decides.
+    st.builds(lambda k: k + 0.5, st.integers(-30, 60)),
+    st.sampled_from([np.nan, np.inf, -np.inf, 1e30]),
+)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.tuples(coordinates, coordinates), max_size=40), st.integers(-10, 10),
+       st.integers(-10, 10), st.integers(1, 30), st.integers(1, 30))
+def test_points_mask_is_the_array_forms(points, x0, y0, height, width):
+    uv = np.array(points, np.float64).reshape(-1, 2)
+    # The array form it replaced: numpy's rounding, then the box's bounds.
+    expected = np.zeros((height, width), np.uint8)
+    with np.errstate(invalid="ignore"):
+        ij = np.round(uv - (x0, y0)).astype(np.int64)
+    keep = (ij[:, 0] >= 0) & (ij[:, 0] < width) & (ij[:, 1] >= 0) & (ij[:, 1] < height)
+    expected[ij[keep, 1], ij[keep, 0]] = 1
+    np.testing.assert_array_equal(points_mask(uv, x0, y0, (height, width)), expected)
+
+
 def test_silhouette_mask_joins_samples_as_far_apart_as_its_discs_are_wide():
     # A row of samples 3 px apart with discs of radius 2 makes one bar.
     uv = np.stack([np.arange(5.0, 30.0, 3.0), np.full(9, 10.0)], axis=1)
