@@ -435,8 +435,8 @@ def test_a_rival_view_is_also_tried_nearer_and_farther(bracket_model, monkeypatc
     # ranks between the truth and the runner-up at its searched depth.
     model = bracket_model
     camera, first_view, other_view, sim, loc = _two_views_at_one_location(model)
+    truth_factor = localize_module.RIVAL_SCALE_FACTORS[0]
     monkeypatch.setattr(localize_module, "RIVAL_SCALE_FACTORS", factors)
-    truth_factor = localize_module.RIVAL_SCALE_FACTORS[0] if factors else 0.88
     truth = _pose_centred(model, other_view, replace(sim, scale=sim.scale * truth_factor),
                           camera)
 
