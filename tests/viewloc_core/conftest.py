@@ -26,6 +26,17 @@ def l_bracket() -> trimesh.Trimesh:
     return trimesh.util.concatenate([plate, upright, rib])
 
 
+#: The colour of :func:`coloured_bracket`'s orange copy (:func:`orange_model`).
+ORANGE = (230, 110, 20)
+
+
+def coloured_bracket(rgb: tuple[int, int, int]) -> trimesh.Trimesh:
+    """:func:`l_bracket` with every face of colour ``rgb``."""
+    mesh = l_bracket()
+    mesh.visual.face_colors = [*rgb, 255]
+    return mesh
+
+
 def ribbed_bracket() -> trimesh.Trimesh:
     """A smaller asymmetric bracket (plate, wall at one end, thin rib), mm."""
     base = trimesh.creation.box((100.0, 40.0, 8.0))
@@ -59,6 +70,13 @@ def bracket_mesh() -> trimesh.Trimesh:
 def bracket_model(bracket_mesh: trimesh.Trimesh) -> ObjectModel:
     # Level 1 (42 views) keeps the suite fast; the bench uses the defaults.
     return learn_from_mesh(bracket_mesh, LearningConfig(max_level=1, min_level=1))
+
+
+@pytest.fixture(scope="session")
+def orange_model() -> ObjectModel:
+    """The orange bracket learned with its colours (level-1 view sphere)."""
+    return learn_from_mesh(coloured_bracket(ORANGE),
+                           LearningConfig(max_level=1, min_level=1, contour_level=1))
 
 
 @pytest.fixture(scope="session")

@@ -1,17 +1,21 @@
 """Localization: what a detection reports about where the object is."""
 
+import math
 from dataclasses import replace
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from tests.viewloc_core.conftest import blob, render_copies, render_scene
+from tests.viewloc_core.conftest import ORANGE, blob, coloured_bracket, render_copies, render_scene
 from tests.viewloc_core.test_shading import LIGHTS
 from viewloc_core import localize as localize_module
 from viewloc_core.align import Match2D
 from viewloc_core.camera import Camera
 from viewloc_core.detection import Detection, Similarity2D
+from viewloc_core.features import extract_features
 from viewloc_core.learn import LearningConfig, learn_from_mesh
 from viewloc_core.localize import (
     COLOUR_WEIGHT,
@@ -24,13 +28,17 @@ from viewloc_core.localize import (
     MIN_COLOUR_AGREEMENT,
     MIN_COLOUR_RANK,
     QUICK_REFINE,
+    SHADING_WEIGHT,
     SPARE_MIN_CHANCE_CORRECTED,
     SPARE_MIN_CHANCE_CORRECTED_IN_COLOUR,
     SPARE_MIN_VIEW_EVIDENCE_SHARE,
     LocalizeOptions,
+    _ColourScene,
+    _contour_model,
     _convincing,
     _FitOptions,
     _Fitted,
+    _Interior,
     _Located,
     _non_increasing,
     _on_levels,
@@ -39,7 +47,9 @@ from viewloc_core.localize import (
     _ranked,
     _refine_levels,
     _settled,
+    _Shading,
     _spare_locations,
+    _surface,
     _view_candidate_count,
     localize,
 )
@@ -328,6 +338,81 @@ def test_a_smooth_part_is_turned_the_right_way_by_its_shading(renderer, monkeypa
     assert with_shading >= right_way(0.0) + 3
 
 
+@pytest.fixture(scope="module")
+def orange_scene(renderer, orange_model):
+    """The ranking of fits in a scene of the orange bracket among boxes,
+    with every cue on (shading, colour, interior edges): the
+    :class:`_Shading`, the camera and the true pose."""
+    camera = Camera(600.0, 600.0, 319.5, 239.5, 640, 480)
+    truth = Pose(Rotation.from_euler("xyz", [0.5, -0.4, 0.9]).as_matrix(),
+                 np.array([10.0, -5.0, 420.0]))
+    image = render_scene(renderer, coloured_bracket(ORANGE), camera, truth, clutter=6)
+    contour = _contour_model(orange_model)
+    surface = _surface(orange_model)
+    colour = _ColourScene.of(orange_model, image, 1.0)
+    assert contour is not None and surface is not None and colour is not None
+    interior = _Interior(extract_features(image).edge_distance, 1.0, contour)
+    return _Shading(image, *surface, colour, interior), camera, truth
+
+
+@settings(max_examples=40, deadline=None)
+@given(inliers=st.floats(0.0, 1.0), turn_deg=st.floats(0.0, 180.0),
+       short_of=st.floats(-1.5, 1.5))
+def test_a_ranking_stops_early_only_for_a_fit_below_the_rank_it_must_reach(
+        orange_scene, inliers, turn_deg, short_of):
+    # A fit turned away from the truth, with any share of its contour
+    # confirmed, asked to reach its own full rank plus ``short_of``: it gets
+    # that rank, or -inf when the rank is below what it must reach.
+    shading, camera, truth = orange_scene
+    turn = Rotation.from_rotvec(np.radians(turn_deg) * np.array([0.6, 0.8, 0.0])).as_matrix()
+    fit = RefinementResult(Pose(truth.R_m2c @ turn, truth.t_m2c), True, 10, 0.5, inliers)
+    full = shading.rank(camera, fit)
+    bounded = shading.rank(camera, fit, at_least=full + short_of)
+    if short_of <= 0.0:
+        assert bounded == full
+    else:
+        assert bounded in (full, -math.inf)
+
+
+@pytest.mark.parametrize(("bound_after", "read_before"),
+                         [("contour", []), ("colour", ["colour"]),
+                          ("shading", ["colour", "shading"])])
+def test_a_ranking_reads_no_cue_once_the_rank_it_must_reach_is_out_of_reach(
+        orange_scene, monkeypatch, bound_after, read_before):
+    # With every cue at most 1, a fit confirming 0.2 of its contour ranks
+    # at most 0.2 + SHADING_WEIGHT + COLOUR_WEIGHT; with its colour read, at
+    # most 0.2 + SHADING_WEIGHT + that colour; with its shading read too,
+    # at most its rank without the interior edges (which only lower it).
+    # Asked for a hair more than such a bound, the ranking reads no further
+    # cue; for a hair less, it reads the next one.
+    shading, camera, truth = orange_scene
+    fit = RefinementResult(truth, True, 10, 0.5, 0.2)
+    colour = shading.colour.agreement(camera, truth, shading.samples)
+    bound = {"contour": 0.2 + SHADING_WEIGHT + COLOUR_WEIGHT,
+             "colour": 0.2 + SHADING_WEIGHT + COLOUR_WEIGHT * colour,
+             "shading": replace(shading, interior=None).rank(camera, fit)}[bound_after]
+    full = shading.rank(camera, fit)
+    read: list[str] = []
+
+    def spy(name, function):
+        def read_cue(*args, **kwargs):
+            read.append(name)
+            return function(*args, **kwargs)
+        return read_cue
+
+    monkeypatch.setattr(_ColourScene, "agreement", spy("colour", _ColourScene.agreement))
+    monkeypatch.setattr(localize_module, "shading_agreement",
+                        spy("shading", localize_module.shading_agreement))
+    monkeypatch.setattr(_Interior, "explained_share",
+                        spy("interior", _Interior.explained_share))
+    assert shading.rank(camera, fit, at_least=bound + 1e-6) == -math.inf
+    assert read == read_before
+    read.clear()
+    assert shading.rank(camera, fit, at_least=bound - 1e-6) in (full, -math.inf)
+    next_cue = {"contour": "colour", "colour": "shading", "shading": "interior"}[bound_after]
+    assert read[len(read_before)] == next_cue
+
+
 def _two_views_at_one_location(model):
     """A camera, a location whose view search found training view 0 and,
     second, a view over 60° from it, both at the image centre, and the
@@ -372,7 +457,7 @@ def test_a_near_symmetric_parts_best_other_start_gets_the_full_fit(
         near = NearSymmetries(np.eye(4)[None] if near_symmetric else np.zeros((0, 4, 4)),
                               np.ones(1 if near_symmetric else 0))
 
-        def rank(self, camera_, result):
+        def rank(self, camera_, result, at_least=-math.inf):
             return result.inlier_fraction
 
     monkeypatch.setattr(localize_module, "refine_pose", refine)
@@ -410,7 +495,7 @@ def test_a_winning_rivals_own_twin_is_tried_in_the_next_round(bracket_model, mon
     class Shading:
         near = NearSymmetries(half_turn[None], np.ones(1))
 
-        def rank(self, camera_, result):
+        def rank(self, camera_, result, at_least=-math.inf):
             R = result.pose.R_m2c
             if rotation_angle_deg(R, truth.R_m2c) < 1.0:
                 return 1.0
@@ -446,7 +531,7 @@ def test_a_rival_view_is_also_tried_nearer_and_farther(bracket_model, monkeypatc
     class Shading:
         near = NearSymmetries(np.zeros((0, 4, 4)), np.ones(0))
 
-        def rank(self, camera_, result):
+        def rank(self, camera_, result, at_least=-math.inf):
             R, t = result.pose.R_m2c, result.pose.t_m2c
             if rotation_angle_deg(R, truth.R_m2c) > 1.0:
                 return 0.8

@@ -10,17 +10,15 @@ import numpy as np
 import pytest
 import trimesh
 
-from tests.viewloc_core.conftest import l_bracket
+from tests.viewloc_core.conftest import ORANGE, coloured_bracket
 from viewloc_core import part_colour as pc
 from viewloc_core.camera import Camera
 from viewloc_core.errors import ModelFormatError
-from viewloc_core.learn import LearningConfig, learn_from_mesh
 from viewloc_core.localize import LocalizeOptions, localize
 from viewloc_core.model import model_from_arrays, model_to_arrays
 from viewloc_core.pose import Pose
 from viewloc_core.render import Light, prepare
 
-ORANGE = (230, 110, 20)
 BLUE = (30, 70, 200)
 
 
@@ -157,18 +155,6 @@ def test_agreement_is_the_mean_posterior_under_the_points() -> None:
                   & (pc.posterior(np.array([-2.0, 0.0, 3.0], np.float32)) < 1))
 
 
-def _coloured_bracket(rgb: tuple[int, int, int]) -> trimesh.Trimesh:
-    mesh = l_bracket()
-    mesh.visual.face_colors = [*rgb, 255]
-    return mesh
-
-
-@pytest.fixture(scope="module")
-def orange_model():
-    return learn_from_mesh(_coloured_bracket(ORANGE),
-                           LearningConfig(max_level=1, min_level=1, contour_level=1))
-
-
 def test_learning_keeps_the_colours_of_a_coloured_mesh_only(orange_model, bracket_model):
     assert bracket_model.colour_histogram is None
     hist = orange_model.colour_histogram
@@ -196,8 +182,8 @@ def test_the_part_is_told_from_a_look_alike_of_another_colour(orange_model, rend
     lights = [Light("directional", direction_cam=(0.6, 0.5, 1.0), intensity=3.0),
               Light("ambient", intensity=0.3)]
     image = renderer.render_scene(
-        [(prepare(_coloured_bracket(ORANGE)), orange_pose),
-         (prepare(_coloured_bracket(BLUE)), blue_pose)],
+        [(prepare(coloured_bracket(ORANGE)), orange_pose),
+         (prepare(coloured_bracket(BLUE)), blue_pose)],
         camera, lights=lights, background_rgb=(90, 90, 90)).color
     dets = localize(orange_model, image, camera).detections
     assert dets
