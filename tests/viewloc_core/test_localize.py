@@ -556,6 +556,37 @@ def test_a_rival_view_is_also_tried_nearer_and_farther(bracket_model, monkeypatc
         assert (view, result.pose) == (first_view, first_pose)
 
 
+@pytest.mark.parametrize("above_the_bar", [True, False])
+def test_a_runner_up_view_competes_from_its_share_of_the_best_views_evidence(
+        bracket_model, monkeypatch, above_the_bar):
+    # The runner-up view is the truth (it ranks higher once fitted); it gets
+    # its fit when its evidence is at least OTHER_VIEW_EVIDENCE_SHARE of the
+    # best view's, and not below.
+    model = bracket_model
+    camera, first_view, other_view, sim, loc = _two_views_at_one_location(model)
+    share = localize_module.OTHER_VIEW_EVIDENCE_SHARE + (0.01 if above_the_bar else -0.01)
+    runner_up = replace(loc.candidates[1], log_likelihood_ratio=share * loc.evidence)
+    loc = _Located(loc.match, [loc.candidates[0], runner_up])
+    truth = _pose_centred(model, other_view, sim, camera)
+
+    def refine(edges, camera_, start, contour, options):
+        return RefinementResult(start, True, 3, 0.5, 0.9)
+
+    class Shading:
+        near = NearSymmetries(np.zeros((0, 4, 4)), np.ones(0))
+
+        def rank(self, camera_, result, at_least=-math.inf):
+            return 1.0 if rotation_angle_deg(result.pose.R_m2c, truth.R_m2c) < 1.0 else 0.8
+
+    monkeypatch.setattr(localize_module, "refine_pose", refine)
+    monkeypatch.setattr(NearSymmetries, "twins", lambda self, pose: [])
+    first_pose = _pose_centred(model, first_view, sim, camera)
+    first = RefinementResult(first_pose, True, 10, 0.5, 0.9)
+    _, view, _, _ = _other_sides(model, loc, 1.0, camera, None, None, Shading(), first_view,
+                                 sim, first_pose, first, _FitOptions())
+    assert view == (other_view if above_the_bar else first_view)
+
+
 def test_a_near_symmetric_part_gets_more_view_candidates(bracket_model):
     # An egg-like part's outline is nearly the same from several sides: its
     # rival views lie beyond the best few, so the view search returns more.
