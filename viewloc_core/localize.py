@@ -995,11 +995,12 @@ def _best_rival(
     chosen = (result, t_view, similarity, start)
     if not distinct:
         return chosen
-    current = shading.rank(camera, result)
+    first_rank = shading.rank(camera, result)
     near_symmetric = len(shading.near.transforms) > 0
     # The least rank a quick fit needs to become a contender (below): the
     # ranking of one that cannot reach it stops early.
-    contender_floor = current - NEAR_SYMMETRIC_MAX_SHORT_FIT_GAP if near_symmetric else current
+    contender_floor = (first_rank - NEAR_SYMMETRIC_MAX_SHORT_FIT_GAP if near_symmetric
+                       else first_rank)
 
     def quick_fit(start_c: tuple[int, Similarity2D, Pose, RefineOptions],
                   ) -> tuple[float, int, Similarity2D, Pose, Pose]:
@@ -1030,9 +1031,10 @@ def _best_rival(
     def full_fit(quick_pose: Pose) -> tuple[RefinementResult, float]:
         other = refine_pose(edges, camera, quick_pose, contour, fit_options.final)
         # Only a full fit that ranks higher than ``result`` matters.
-        return other, shading.rank(camera, other, at_least=current)
+        return other, shading.rank(camera, other, at_least=first_rank)
 
     full_fits = each_on_both(full_fit, [f[4] for f in contenders])
+    current = first_rank
     for (_, view_c, sim_c, pose_c, _), (other, rank) in zip(contenders, full_fits, strict=True):
         if rank > current:
             current, chosen = rank, (other, view_c, sim_c, pose_c)
