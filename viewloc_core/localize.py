@@ -932,19 +932,30 @@ def _other_sides(
     round, up to ``OTHER_SIDE_ROUNDS`` in all: the first fit's are made from
     a pose that may be far from the truth, and the winner's may lie near it
     (hard bench set, free-form part: two images in which the truth lay near
-    a reversal of the winning rival, never tried).
+    a reversal of the winning rival, never tried). When none wins, the
+    further round tries the twins and reversals of the best full fit that
+    lost by less than ``NEAR_SYMMETRIC_MAX_SHORT_FIT_GAP`` instead: a part
+    turned over ranks within hundredths of its truth, and the truth may lie
+    near a turn of the runner-up rather than of the first fit (hard bench
+    set, learning seed 1, free-form part: a first fit 52° off, its
+    runner-up turned over, the truth a half turn of that runner-up).
     """
     chosen = (result, t_view, similarity, start)
     tried = [result.pose.R_m2c]
     candidates = loc.candidates[1:]
+    # The fit whose twins and reversals the round tries (None: the chosen).
+    turned: RefinementResult | None = None
     for _ in range(OTHER_SIDE_ROUNDS):
-        winner = _best_rival(model, loc.evidence, candidates, factor, camera, edges, contour,
-                             shading, *chosen, tried, fit_options)
-        if winner[0] is chosen[0]:
-            break
-        chosen = winner
-        tried.append(winner[0].pose.R_m2c)
+        winner, runner_up = _best_rival(model, loc.evidence, candidates, factor, camera, edges,
+                                        contour, shading, *chosen, tried, fit_options, turned)
         candidates = []  # the location's views were all tried in the first round
+        if winner[0] is not chosen[0]:
+            chosen, turned = winner, None
+            tried.append(winner[0].pose.R_m2c)
+        elif runner_up is not None and turned is None:
+            turned = runner_up
+        else:
+            break
     return chosen
 
 
@@ -953,14 +964,18 @@ def _best_rival(
     camera: Camera, edges: EdgePyramid, contour: ContourModel, shading: _Shading,
     result: RefinementResult, t_view: int, similarity: Similarity2D, start: Pose,
     tried: list[NDArray[np.float64]], fit_options: _FitOptions,
-) -> tuple[RefinementResult, int, Similarity2D, Pose]:
+    turned: RefinementResult | None = None,
+) -> tuple[tuple[RefinementResult, int, Similarity2D, Pose], RefinementResult | None]:
     """One round of :func:`_other_sides`: the fit of the rival start that
-    ranks highest, or ``result`` (the same object) when none ranks higher.
+    ranks highest, or ``result`` (the same object) when none ranks higher;
+    and, when none does on a part with near-symmetries, the full fit that
+    ranked highest below it but not more than
+    ``NEAR_SYMMETRIC_MAX_SHORT_FIT_GAP`` below (None otherwise).
 
     The rival starts are ``candidates`` (view search runners-up, best
     first) with at least ``OTHER_VIEW_EVIDENCE_SHARE`` of ``evidence``, each
-    also nearer and farther (``RIVAL_SCALE_FACTORS``), and ``result``'s
-    twins and reversals. Each start at least
+    also nearer and farther (``RIVAL_SCALE_FACTORS``), and the twins and
+    reversals of ``turned`` (``result`` when None). Each start at least
     ``DISTINCT_VIEW_DEG`` from the rotations in ``tried`` (extended in
     place) gets a short coarse fit; the best by :meth:`_Shading.rank` gets
     the full fit when it ranks higher than ``result`` (on a part with
@@ -980,10 +995,10 @@ def _best_rival(
     # The fit turned by each near-symmetry, or mirrored and reversed in
     # depth, keeps the 2D match's view and similarity: no training view
     # shows it.
+    base = (result if turned is None else turned).pose
     starts += [(t_view, similarity, twin, fit_options.twin)
-               for twin in shading.near.twins(result.pose) + shading.near.reversals(result.pose)
-               + (shading.near.outline_turns(result.pose) if len(shading.near.transforms)
-                  else [])]
+               for twin in shading.near.twins(base) + shading.near.reversals(base)
+               + (shading.near.outline_turns(base) if len(shading.near.transforms) else [])]
     distinct = []
     for i, (view_c, sim_c, pose_c, quick_options) in enumerate(starts):
         if any(within_angle_deg(pose_c.R_m2c, R, sym, DISTINCT_VIEW_DEG) for R in tried):
@@ -1000,7 +1015,7 @@ def _best_rival(
 
     chosen = (result, t_view, similarity, start)
     if not distinct:
-        return chosen
+        return chosen, None
     first_rank = shading.rank(camera, result)
     near_symmetric = len(shading.near.transforms) > 0
     # The least rank a quick fit needs to become a contender (below): the
@@ -1036,15 +1051,19 @@ def _best_rival(
 
     def full_fit(quick_pose: Pose) -> tuple[RefinementResult, float]:
         other = refine_pose(edges, camera, quick_pose, contour, fit_options.final)
-        # Only a full fit that ranks higher than ``result`` matters.
-        return other, shading.rank(camera, other, at_least=first_rank)
+        # Only a full fit that ranks higher than ``result`` matters, or
+        # (as the runner-up) one at least at the contender floor.
+        return other, shading.rank(camera, other, at_least=contender_floor)
 
     full_fits = each_on_both(full_fit, [f[4] for f in contenders])
     current = first_rank
+    runner_up, runner_up_rank = None, -math.inf
     for (_, view_c, sim_c, pose_c, _), (other, rank) in zip(contenders, full_fits, strict=True):
         if rank > current:
             current, chosen = rank, (other, view_c, sim_c, pose_c)
-    return chosen
+        elif near_symmetric and contender_floor <= rank and rank > runner_up_rank:
+            runner_up, runner_up_rank = other, rank
+    return chosen, (runner_up if chosen[0] is result else None)
 
 
 def _refit_from_other_starts(

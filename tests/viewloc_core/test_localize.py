@@ -529,6 +529,46 @@ def test_a_winning_rivals_own_twin_is_tried_in_the_next_round(bracket_model, mon
     assert rotation_angle_deg(result.pose.R_m2c, expected.R_m2c) < 1e-6
 
 
+@pytest.mark.parametrize("short_by", [0.05, 0.2])
+def test_a_losing_runner_ups_twin_is_tried_when_it_lost_narrowly(bracket_model, monkeypatch,
+                                                                 short_by):
+    # The truth is the half turn of a runner-up view that ranks ``short_by``
+    # below the first fit. Round one: nothing beats the first fit (its own
+    # twin ranks low). Round two tries the runner-up's twin, the truth, when
+    # the runner-up lost by less than NEAR_SYMMETRIC_MAX_SHORT_FIT_GAP.
+    gap = localize_module.NEAR_SYMMETRIC_MAX_SHORT_FIT_GAP
+    assert 0.05 < gap < 0.2
+    model = bracket_model
+    camera, first_view, other_view, sim, loc = _two_views_at_one_location(model)
+    half_turn = np.eye(4)
+    half_turn[:3, :3] = Rotation.from_rotvec([0.0, 0.0, np.pi]).as_matrix()
+    first_pose = _pose_centred(model, first_view, sim, camera)
+    runner_up = _pose_centred(model, other_view, sim, camera)
+    truth = NearSymmetries(half_turn[None], np.ones(1)).twins(runner_up)[0]
+
+    def refine(edges, camera_, start, contour, options):
+        return RefinementResult(start, True, 3, 0.5, 0.9)
+
+    class Shading:
+        near = NearSymmetries(half_turn[None], np.ones(1))
+
+        def rank(self, camera_, result, at_least=-math.inf):
+            R = result.pose.R_m2c
+            if rotation_angle_deg(R, truth.R_m2c) < 1.0:
+                return 1.0
+            if rotation_angle_deg(R, runner_up.R_m2c) < 1.0:
+                return 0.9 - short_by
+            return 0.9 if rotation_angle_deg(R, first_pose.R_m2c) < 1.0 else 0.5
+
+    monkeypatch.setattr(localize_module, "refine_pose", refine)
+    monkeypatch.setattr(localize_module, "RIVAL_SCALE_FACTORS", ())
+    first = RefinementResult(first_pose, True, 10, 0.5, 0.9)
+    result, _, _, _ = _other_sides(model, loc, 1.0, camera, None, None, Shading(),
+                                   first_view, sim, first_pose, first, _FitOptions())
+    expected = truth if short_by < gap else first_pose
+    assert rotation_angle_deg(result.pose.R_m2c, expected.R_m2c) < 1e-6
+
+
 @pytest.mark.parametrize("factors", [(), localize_module.RIVAL_SCALE_FACTORS])
 def test_a_rival_view_is_also_tried_nearer_and_farther(bracket_model, monkeypatch, factors):
     # The view search finds the runner-up view (the truth's) a few % off in
