@@ -569,6 +569,37 @@ def test_a_losing_runner_ups_twin_is_tried_when_it_lost_narrowly(bracket_model, 
     assert rotation_angle_deg(result.pose.R_m2c, expected.R_m2c) < 1e-6
 
 
+def test_a_part_without_near_symmetries_is_turned_over_about_its_outlines_axes(
+        bracket_model, monkeypatch):
+    # The L-bracket has no near-symmetry, but its outline can be nearly
+    # symmetric about an axis in the image: the truth is the first fit
+    # turned over about the line of sight, which only an outline turn
+    # reaches. Refinement leaves every pose where it is.
+    model = bracket_model
+    surface = localize_module._surface(model)
+    assert surface is not None and len(surface[1].transforms) == 0
+    camera, first_view, _, sim, loc = _two_views_at_one_location(model)
+    loc = _Located(loc.match, loc.candidates[:1])
+    first_pose = _pose_centred(model, first_view, sim, camera)
+    truth = surface[1].outline_turns(first_pose)[2]
+
+    def refine(edges, camera_, start, contour, options):
+        return RefinementResult(start, True, 3, 0.5, 0.9)
+
+    class Shading:
+        near = surface[1]
+
+        def rank(self, camera_, result, at_least=-math.inf):
+            return 1.0 if rotation_angle_deg(result.pose.R_m2c, truth.R_m2c) < 1.0 else 0.8
+
+    monkeypatch.setattr(localize_module, "refine_pose", refine)
+    first = RefinementResult(first_pose, True, 10, 0.5, 0.9)
+    result, view, _, _ = _other_sides(model, loc, 1.0, camera, None, None, Shading(),
+                                      first_view, sim, first_pose, first, _FitOptions())
+    assert view == first_view
+    assert rotation_angle_deg(result.pose.R_m2c, truth.R_m2c) < 1e-6
+
+
 @pytest.mark.parametrize("factors", [(), localize_module.RIVAL_SCALE_FACTORS])
 def test_a_rival_view_is_also_tried_nearer_and_farther(bracket_model, monkeypatch, factors):
     # The view search finds the runner-up view (the truth's) a few % off in
