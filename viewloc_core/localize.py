@@ -926,24 +926,27 @@ def _other_sides(
     the fit mirrored in each near mirror plane and reversed in depth
     (:meth:`NearSymmetries.reversals`: the same outline tilted the other
     way; hard bench set, free-form part: 7 of 15 wrong poses lay within 25°
-    of it). See :func:`_best_rival` for how they compete.
+    of it), and, on every part, the fit turned over about its outline's
+    axes in the image (:meth:`NearSymmetries.outline_turns`). See
+    :func:`_best_rival` for how they compete.
 
-    When a rival wins, its own twins and reversals are tried in a further
-    round, up to ``OTHER_SIDE_ROUNDS`` in all: the first fit's are made from
-    a pose that may be far from the truth, and the winner's may lie near it
-    (hard bench set, free-form part: two images in which the truth lay near
-    a reversal of the winning rival, never tried). When none wins, the
-    further round tries the twins and reversals of the best full fit that
-    lost by less than ``NEAR_SYMMETRIC_MAX_SHORT_FIT_GAP`` instead: a part
-    turned over ranks within hundredths of its truth, and the truth may lie
-    near a turn of the runner-up rather than of the first fit (hard bench
-    set, learning seed 1, free-form part: a first fit 52° off, its
-    runner-up turned over, the truth a half turn of that runner-up).
+    When a rival wins, its own twins, reversals and outline turns are tried
+    in a further round, up to ``OTHER_SIDE_ROUNDS`` in all: the first fit's
+    are made from a pose that may be far from the truth, and the winner's
+    may lie near it (hard bench set, free-form part: two images in which
+    the truth lay near a reversal of the winning rival, never tried). When
+    none wins, the further round tries those of the best full fit that lost
+    by less than ``NEAR_SYMMETRIC_MAX_SHORT_FIT_GAP`` instead: a part turned
+    over ranks within hundredths of its truth, and the truth may lie near a
+    turn of the runner-up rather than of the first fit (hard bench set,
+    learning seed 1, free-form part: a first fit 52° off, its runner-up
+    turned over, the truth a half turn of that runner-up).
     """
     chosen = (result, t_view, similarity, start)
     tried = [result.pose.R_m2c]
     candidates = loc.candidates[1:]
-    # The fit whose twins and reversals the round tries (None: the chosen).
+    # The fit whose twins, reversals and outline turns the round tries
+    # (None: the chosen).
     turned: RefinementResult | None = None
     for _ in range(OTHER_SIDE_ROUNDS):
         winner, runner_up = _best_rival(model, loc.evidence, candidates, factor, camera, edges,
