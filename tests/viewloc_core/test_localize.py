@@ -491,6 +491,45 @@ def test_a_near_symmetric_parts_best_other_start_gets_the_full_fit(
     assert len(full_fits) == (1 if wins else 0)
 
 
+def _runner_up_and_its_twin(model):
+    """Two views at one location (:func:`_two_views_at_one_location`), a
+    near-symmetry of the part (a half turn about its z axis), the first
+    view's pose, the runner-up view's pose and that pose's twin (the truth
+    of the tests that use it): (camera, first_view, other_view, sim, loc,
+    near, first_pose, runner_up, truth)."""
+    camera, first_view, other_view, sim, loc = _two_views_at_one_location(model)
+    half_turn = np.eye(4)
+    half_turn[:3, :3] = Rotation.from_rotvec([0.0, 0.0, np.pi]).as_matrix()
+    near = NearSymmetries(half_turn[None], np.ones(1))
+    first_pose = _pose_centred(model, first_view, sim, camera)
+    runner_up = _pose_centred(model, other_view, sim, camera)
+    return (camera, first_view, other_view, sim, loc, near, first_pose, runner_up,
+            near.twins(runner_up)[0])
+
+
+class _RankedByRotation:
+    """A fake :class:`_Shading` with the part's near-symmetries ``near``: a
+    fit ranks as the first of ``ranks`` ((pose, rank) pairs) whose rotation
+    is within 1° of its own, ``otherwise`` when none is."""
+
+    def __init__(self, near: NearSymmetries, ranks: list[tuple[Pose, float]],
+                 otherwise: float) -> None:
+        self.near = near
+        self.ranks = ranks
+        self.otherwise = otherwise
+
+    def rank(self, camera, result, at_least=-math.inf):
+        for pose, rank in self.ranks:
+            if rotation_angle_deg(result.pose.R_m2c, pose.R_m2c) < 1.0:
+                return rank
+        return self.otherwise
+
+
+def _refine_in_place(edges, camera, start, contour, options):
+    """A refinement that leaves every pose where it is, confirming 0.9."""
+    return RefinementResult(start, True, 3, 0.5, 0.9)
+
+
 @pytest.mark.parametrize("rounds", [1, 2])
 def test_a_winning_rivals_own_twin_is_tried_in_the_next_round(bracket_model, monkeypatch,
                                                               rounds):
@@ -500,29 +539,14 @@ def test_a_winning_rivals_own_twin_is_tried_in_the_next_round(bracket_model, mon
     # Refinement leaves every pose where it is; the rank says how near a
     # pose is to the truth or to the runner-up.
     model = bracket_model
-    camera, first_view, other_view, sim, loc = _two_views_at_one_location(model)
-    half_turn = np.eye(4)
-    half_turn[:3, :3] = Rotation.from_rotvec([0.0, 0.0, np.pi]).as_matrix()
-    first_pose = _pose_centred(model, first_view, sim, camera)
-    runner_up = _pose_centred(model, other_view, sim, camera)
-    truth = NearSymmetries(half_turn[None], np.ones(1)).twins(runner_up)[0]
+    camera, first_view, other_view, sim, loc, half_turns, first_pose, runner_up, truth = (
+        _runner_up_and_its_twin(model))
 
-    def refine(edges, camera_, start, contour, options):
-        return RefinementResult(start, True, 3, 0.5, 0.9)
-
-    class Shading:
-        near = NearSymmetries(half_turn[None], np.ones(1))
-
-        def rank(self, camera_, result, at_least=-math.inf):
-            R = result.pose.R_m2c
-            if rotation_angle_deg(R, truth.R_m2c) < 1.0:
-                return 1.0
-            return 0.8 if rotation_angle_deg(R, runner_up.R_m2c) < 1.0 else 0.5
-
-    monkeypatch.setattr(localize_module, "refine_pose", refine)
+    shading = _RankedByRotation(half_turns, [(truth, 1.0), (runner_up, 0.8)], 0.5)
+    monkeypatch.setattr(localize_module, "refine_pose", _refine_in_place)
     monkeypatch.setattr(localize_module, "OTHER_SIDE_ROUNDS", rounds)
     first = RefinementResult(first_pose, True, 10, 0.5, 0.9)
-    result, view, _, _ = _other_sides(model, loc, 1.0, camera, None, None, Shading(),
+    result, view, _, _ = _other_sides(model, loc, 1.0, camera, None, None, shading,
                                       first_view, sim, first_pose, first, _FitOptions())
     assert view == other_view
     expected = truth if rounds == 2 else runner_up
@@ -539,31 +563,15 @@ def test_a_losing_runner_ups_twin_is_tried_when_it_lost_narrowly(bracket_model, 
     gap = localize_module.NEAR_SYMMETRIC_MAX_SHORT_FIT_GAP
     assert 0.05 < gap < 0.2
     model = bracket_model
-    camera, first_view, other_view, sim, loc = _two_views_at_one_location(model)
-    half_turn = np.eye(4)
-    half_turn[:3, :3] = Rotation.from_rotvec([0.0, 0.0, np.pi]).as_matrix()
-    first_pose = _pose_centred(model, first_view, sim, camera)
-    runner_up = _pose_centred(model, other_view, sim, camera)
-    truth = NearSymmetries(half_turn[None], np.ones(1)).twins(runner_up)[0]
+    camera, first_view, other_view, sim, loc, half_turns, first_pose, runner_up, truth = (
+        _runner_up_and_its_twin(model))
 
-    def refine(edges, camera_, start, contour, options):
-        return RefinementResult(start, True, 3, 0.5, 0.9)
-
-    class Shading:
-        near = NearSymmetries(half_turn[None], np.ones(1))
-
-        def rank(self, camera_, result, at_least=-math.inf):
-            R = result.pose.R_m2c
-            if rotation_angle_deg(R, truth.R_m2c) < 1.0:
-                return 1.0
-            if rotation_angle_deg(R, runner_up.R_m2c) < 1.0:
-                return 0.9 - short_by
-            return 0.9 if rotation_angle_deg(R, first_pose.R_m2c) < 1.0 else 0.5
-
-    monkeypatch.setattr(localize_module, "refine_pose", refine)
+    shading = _RankedByRotation(
+        half_turns, [(truth, 1.0), (runner_up, 0.9 - short_by), (first_pose, 0.9)], 0.5)
+    monkeypatch.setattr(localize_module, "refine_pose", _refine_in_place)
     monkeypatch.setattr(localize_module, "RIVAL_SCALE_FACTORS", ())
     first = RefinementResult(first_pose, True, 10, 0.5, 0.9)
-    result, _, _, _ = _other_sides(model, loc, 1.0, camera, None, None, Shading(),
+    result, _, _, _ = _other_sides(model, loc, 1.0, camera, None, None, shading,
                                    first_view, sim, first_pose, first, _FitOptions())
     expected = truth if short_by < gap else first_pose
     assert rotation_angle_deg(result.pose.R_m2c, expected.R_m2c) < 1e-6
@@ -583,18 +591,10 @@ def test_a_part_without_near_symmetries_is_turned_over_about_its_outlines_axes(
     first_pose = _pose_centred(model, first_view, sim, camera)
     truth = surface[1].outline_turns(first_pose)[2]
 
-    def refine(edges, camera_, start, contour, options):
-        return RefinementResult(start, True, 3, 0.5, 0.9)
-
-    class Shading:
-        near = surface[1]
-
-        def rank(self, camera_, result, at_least=-math.inf):
-            return 1.0 if rotation_angle_deg(result.pose.R_m2c, truth.R_m2c) < 1.0 else 0.8
-
-    monkeypatch.setattr(localize_module, "refine_pose", refine)
+    shading = _RankedByRotation(surface[1], [(truth, 1.0)], 0.8)
+    monkeypatch.setattr(localize_module, "refine_pose", _refine_in_place)
     first = RefinementResult(first_pose, True, 10, 0.5, 0.9)
-    result, view, _, _ = _other_sides(model, loc, 1.0, camera, None, None, Shading(),
+    result, view, _, _ = _other_sides(model, loc, 1.0, camera, None, None, shading,
                                       first_view, sim, first_pose, first, _FitOptions())
     assert view == first_view
     assert rotation_angle_deg(result.pose.R_m2c, truth.R_m2c) < 1e-6
@@ -614,9 +614,6 @@ def test_a_rival_view_is_also_tried_nearer_and_farther(bracket_model, monkeypatc
     truth = _pose_centred(model, other_view, replace(sim, scale=sim.scale * truth_factor),
                           camera)
 
-    def refine(edges, camera_, start, contour, options):
-        return RefinementResult(start, True, 3, 0.5, 0.9)
-
     class Shading:
         near = NearSymmetries(np.zeros((0, 4, 4)), np.ones(0))
 
@@ -626,7 +623,7 @@ def test_a_rival_view_is_also_tried_nearer_and_farther(bracket_model, monkeypatc
                 return 0.8
             return 1.0 if abs(t[2] - truth.t_m2c[2]) < 1e-6 * truth.t_m2c[2] else 0.5
 
-    monkeypatch.setattr(localize_module, "refine_pose", refine)
+    monkeypatch.setattr(localize_module, "refine_pose", _refine_in_place)
     monkeypatch.setattr(NearSymmetries, "twins", lambda self, pose: [])
     first_pose = _pose_centred(model, first_view, sim, camera)
     first = RefinementResult(first_pose, True, 10, 0.5, 0.9)
@@ -658,16 +655,13 @@ def test_a_runner_up_view_competes_from_its_share_of_the_best_views_evidence(
     loc = _Located(loc.match, [loc.candidates[0], runner_up])
     truth = _pose_centred(model, other_view, sim, camera)
 
-    def refine(edges, camera_, start, contour, options):
-        return RefinementResult(start, True, 3, 0.5, 0.9)
-
     class Shading:
         near = NearSymmetries(np.zeros((0, 4, 4)), np.ones(0))
 
         def rank(self, camera_, result, at_least=-math.inf):
             return 1.0 if rotation_angle_deg(result.pose.R_m2c, truth.R_m2c) < 1.0 else 0.8
 
-    monkeypatch.setattr(localize_module, "refine_pose", refine)
+    monkeypatch.setattr(localize_module, "refine_pose", _refine_in_place)
     monkeypatch.setattr(NearSymmetries, "twins", lambda self, pose: [])
     first_pose = _pose_centred(model, first_view, sim, camera)
     first = RefinementResult(first_pose, True, 10, 0.5, 0.9)
