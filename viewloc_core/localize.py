@@ -284,7 +284,8 @@ OTHER_SIDE_ROUNDS = 2
 #: 4 of 5 wrong poses confirmed 0.6-5 % more of the outline, while their
 #: shading agreed 0.02-0.12 less. AR_MSSD, learning seeds 0-4, 0.1 -> 0.2:
 #: novel 0.8405 -> 0.8505 (no seed lower), hard in grey 0.7754 -> 0.7908,
-#: hard 0.8862 -> 0.8837 (one image), paper identical; 0.15 about the same
+#: hard 0.8862 -> 0.8837 (one image, right again once a losing runner-up's
+#: turns are tried: see _other_sides), paper identical; 0.15 about the same
 #: (0.8490, 0.7955, 0.8838); 0.3 lower on hard (seed 0 0.914 -> 0.899).
 SHADING_WEIGHT = 0.2
 
@@ -1072,7 +1073,7 @@ def _best_rival(
     for (_, view_c, sim_c, pose_c, _), (other, rank) in zip(contenders, full_fits, strict=True):
         if rank > current:
             current, chosen = rank, (other, view_c, sim_c, pose_c)
-        elif near_symmetric and contender_floor <= rank and rank > runner_up_rank:
+        elif near_symmetric and rank >= contender_floor and rank > runner_up_rank:
             runner_up, runner_up_rank = other, rank
     return chosen, (runner_up if chosen[0] is result else None)
 

@@ -654,18 +654,13 @@ def test_a_runner_up_view_competes_from_its_share_of_the_best_views_evidence(
     runner_up = replace(loc.candidates[1], log_likelihood_ratio=share * loc.evidence)
     loc = _Located(loc.match, [loc.candidates[0], runner_up])
     truth = _pose_centred(model, other_view, sim, camera)
-
-    class Shading:
-        near = NearSymmetries(np.zeros((0, 4, 4)), np.ones(0))
-
-        def rank(self, camera_, result, at_least=-math.inf):
-            return 1.0 if rotation_angle_deg(result.pose.R_m2c, truth.R_m2c) < 1.0 else 0.8
-
+    shading = _RankedByRotation(NearSymmetries(np.zeros((0, 4, 4)), np.ones(0)),
+                                [(truth, 1.0)], 0.8)
     monkeypatch.setattr(localize_module, "refine_pose", _refine_in_place)
     monkeypatch.setattr(NearSymmetries, "twins", lambda self, pose: [])
     first_pose = _pose_centred(model, first_view, sim, camera)
     first = RefinementResult(first_pose, True, 10, 0.5, 0.9)
-    _, view, _, _ = _other_sides(model, loc, 1.0, camera, None, None, Shading(), first_view,
+    _, view, _, _ = _other_sides(model, loc, 1.0, camera, None, None, shading, first_view,
                                  sim, first_pose, first, _FitOptions())
     assert view == (other_view if above_the_bar else first_view)
 
