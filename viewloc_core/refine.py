@@ -654,7 +654,7 @@ _Q_TRUE = 0.85
 #: Measured on right detections of the hard and novel bench sets, learning
 #: seeds 0-2 (392 poses, error against the truth by axis over the
 #: uncalibrated deviation): 0.55 of the errors lay within 1.96 deviations,
-#: median 1.5-1.9 by axis; this factor puts 0.95 within (the errors' tails
+#: median 1.4-2.0 by axis; this factor puts 0.95 within (the errors' tails
 #: are heavier than a normal distribution's, so the median is 0.43-0.59
 #: rather than 0.67). Deviations from residuals clustered by contour sector
 #: (a sandwich estimator, 8-24 sectors) put only 0.34-0.49 within 2 on hard:
