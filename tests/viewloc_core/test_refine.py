@@ -49,20 +49,26 @@ def _perturbed(truth: Pose, rng: np.random.Generator, rot_deg: float, depth_frac
     return Pose(dR @ truth.R_m2c, t)
 
 
+def _oblique_scene(renderer, prepared, seed: int, cluttered: bool, rot_deg: float,
+                   depth_frac: float) -> tuple[Pose, np.ndarray, Pose]:
+    """The bracket at a random pose about 600 mm away (scipy's uniform
+    rotation of ``seed``), rendered on a plain or cluttered background, and a
+    start ``rot_deg`` and ``depth_frac`` off it: (truth, image, start)."""
+    rng = np.random.default_rng(seed)
+    truth = Pose(Rotation.random(random_state=seed).as_matrix(),
+                 np.array([rng.uniform(-50, 50), rng.uniform(-30, 30), 600.0]))
+    out = renderer.render(prepared, CAM, truth)
+    image = np.where(out.mask[..., None], out.color, _clutter(rng)) if cluttered else out.color
+    return truth, image, _perturbed(truth, rng, rot_deg, depth_frac)
+
+
 # Generic oblique views of the bracket (seeds of scipy's uniform rotations);
 # end-on views where the bracket is a bare rectangle leave rotations
 # unobservable and are not what this test is about.
 @pytest.mark.parametrize(("seed", "cluttered"), [(0, False), (6, False), (8, False), (7, True)])
 def test_converges_from_a_perturbed_pose(bracket_contour_scene, seed, cluttered):
     renderer, prepared, model = bracket_contour_scene
-    rng = np.random.default_rng(seed)
-    truth = Pose(Rotation.random(random_state=seed).as_matrix(),
-                 np.array([rng.uniform(-50, 50), rng.uniform(-30, 30), 600.0]))
-    out = renderer.render(prepared, CAM, truth)
-    image = out.color
-    if cluttered:
-        image = np.where(out.mask[..., None], image, _clutter(rng))
-    init = _perturbed(truth, rng, 4.0, 0.02)
+    truth, image, init = _oblique_scene(renderer, prepared, seed, cluttered, 4.0, 0.02)
     assert rotation_angle_deg(init.R_m2c, truth.R_m2c) > 3.9
     res = refine_pose(image, CAM, init, model)
     assert rotation_angle_deg(res.pose.R_m2c, truth.R_m2c) < 1.0
@@ -129,19 +135,16 @@ def test_a_fit_reports_its_correlated_residuals_in_its_uncertainty(bracket_conto
 
 def test_the_uncertainty_covers_the_error_as_a_normal_distribution_would(bracket_contour_scene):
     # Sixteen cluttered views refined from starts 3 degrees and 1 % off: the
-    # error by axis over the reported deviation lies within 1.96 for about
-    # 0.95 of them, and the deviations are not blown up to get there (the
-    # median ratio stays near a normal's 0.67). With the residuals' own
-    # deviations (no calibration) 0.54 lay within and the median was 1.8.
+    # error by axis over the reported deviation lies within 1.96 for 0.91
+    # of them (0.95 on the bench sets), and the deviations are not blown up
+    # to get there (median ratio 0.55, near a normal's 0.67). With the
+    # residuals' own deviations (no calibration) 0.54 lay within and the
+    # median was 1.85.
     renderer, prepared, model = bracket_contour_scene
     ratios = []
     for seed in range(16):
-        rng = np.random.default_rng(seed)
-        truth = Pose(Rotation.random(random_state=seed).as_matrix(),
-                     np.array([rng.uniform(-50, 50), rng.uniform(-30, 30), 600.0]))
-        out = renderer.render(prepared, CAM, truth)
-        image = np.where(out.mask[..., None], out.color, _clutter(rng))
-        res = refine_pose(image, CAM, _perturbed(truth, rng, 3.0, 0.01), model)
+        truth, image, start = _oblique_scene(renderer, prepared, seed, True, 3.0, 0.01)
+        res = refine_pose(image, CAM, start, model)
         turn_deg = np.degrees(Rotation.from_matrix(res.pose.R_m2c @ truth.R_m2c.T).as_rotvec())
         error = np.abs(np.concatenate([turn_deg, res.pose.t_m2c - truth.t_m2c]))
         ratios.append(error / res.pose_std)
