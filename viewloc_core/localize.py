@@ -24,6 +24,7 @@ import trimesh
 from numpy.typing import NDArray
 
 from viewloc_core import (
+    colour_edges,
     contour_kernels,
     feature_kernels,
     gauss_newton_kernel,
@@ -50,6 +51,7 @@ from viewloc_core.align import (
 )
 from viewloc_core.both_cores import each_on_both
 from viewloc_core.camera import Camera
+from viewloc_core.colour_edges import with_colour_boundary
 from viewloc_core.contour_model import ContourModel
 from viewloc_core.detection import Detection, Similarity2D
 from viewloc_core.distinct_parts import distinct_parts
@@ -472,6 +474,7 @@ def warm_up() -> None:
     refine_kernels.warm_up()
     shading_kernels.warm_up()
     shift_search.warm_up()
+    colour_edges.warm_up()
 
 
 def prepare(model: ObjectModel) -> None:
@@ -1456,6 +1459,10 @@ def localize(
                     if contour is not None
                     and contour.crease_share() >= INTERIOR_EDGE_MIN_CREASE_SHARE else None)
         shading = _Shading(arr, *surface, colour, interior)
+        if colour is not None:
+            # The part's colour boundary is an edge for every fit in this
+            # image (:mod:`viewloc_core.colour_edges`).
+            edges = with_colour_boundary(edges, colour.posterior)
     else:
         colour = None
 

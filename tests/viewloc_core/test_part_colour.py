@@ -257,3 +257,44 @@ def test_a_colour_location_explained_no_better_than_clutter_is_not_fitted(
                 if np.hypot(*(loc.candidates[0].sim[:2] - [200.0, 150.0])) < 40]
     assert [loc for loc in located(bar - best + 1.0)
             if np.hypot(*(loc.candidates[0].sim[:2] - [200.0, 150.0])) < 40]
+
+
+def test_every_fit_in_a_colour_scene_meets_the_parts_colour_boundary(
+        orange_model, renderer, monkeypatch):
+    """With the part's colours known, every refinement of a colour scene runs
+    on the edges with the colour boundary added
+    (:func:`viewloc_core.colour_edges.with_colour_boundary`, once per image,
+    on the colour cue's posterior); the same scene in grey has no colour cue
+    and its fits run on the image's own edges."""
+    import viewloc_core.localize as localize_module
+
+    camera = Camera(600.0, 600.0, 319.5, 239.5, 640, 480)
+    pose = Pose(trimesh.transformations.euler_matrix(0.5, -0.4, 0.9)[:3, :3],
+                np.array([30.0, -20.0, 520.0]))
+    lights = [Light("directional", direction_cam=(0.6, 0.5, 1.0), intensity=3.0),
+              Light("ambient", intensity=0.3)]
+    image = renderer.render_scene([(prepare(coloured_bracket(ORANGE)), pose)], camera,
+                                  lights=lights, background_rgb=(90, 90, 90)).color
+    merged: list[object] = []
+    fitted_on: list[object] = []
+    add_boundary = localize_module.with_colour_boundary
+    refine = localize_module.refine_pose
+
+    def recorded_boundary(edges, posterior, *args, **kwargs):
+        merged.append(add_boundary(edges, posterior, *args, **kwargs))
+        return merged[-1]
+
+    def recorded_refine(edges, *args, **kwargs):
+        fitted_on.append(edges)
+        return refine(edges, *args, **kwargs)
+
+    monkeypatch.setattr(localize_module, "with_colour_boundary", recorded_boundary)
+    monkeypatch.setattr(localize_module, "refine_pose", recorded_refine)
+    dets = localize(orange_model, image, camera).detections
+    assert dets and np.linalg.norm(dets[0].pose.t_m2c - pose.t_m2c) < 10.0
+    assert len(merged) == 1 and fitted_on and all(e is merged[0] for e in fitted_on)
+    merged.clear()
+    fitted_on.clear()
+    grey = np.repeat(image.mean(axis=2, keepdims=True), 3, axis=2).astype(np.uint8)
+    localize(orange_model, grey, camera, LocalizeOptions(min_score=0.0))
+    assert not merged and fitted_on
