@@ -24,7 +24,6 @@ import trimesh
 from numpy.typing import NDArray
 
 from viewloc_core import (
-    colour_edges,
     contour_kernels,
     feature_kernels,
     gauss_newton_kernel,
@@ -474,7 +473,6 @@ def warm_up() -> None:
     refine_kernels.warm_up()
     shading_kernels.warm_up()
     shift_search.warm_up()
-    colour_edges.warm_up()
 
 
 def prepare(model: ObjectModel) -> None:
