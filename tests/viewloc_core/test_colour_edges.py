@@ -1,7 +1,5 @@
 """The part's colour boundary as an edge of the refinement's gradient pyramid."""
 
-import math
-
 import cv2
 import numpy as np
 import pytest
@@ -9,13 +7,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from viewloc_core.camera import Camera
+from tests.viewloc_core.test_refine import CAM, _perturbed
 from viewloc_core.colour_edges import COLOUR_EDGE_WEIGHT, with_colour_boundary
 from viewloc_core.errors import InvalidInputError
 from viewloc_core.pose import Pose, rotation_angle_deg
 from viewloc_core.refine import EdgePyramid, prepare_edges, refine_pose
-
-CAM = Camera(600.0, 600.0, 322.5, 237.5, 640, 480)
 
 
 def _vertical_step(height: int, width: int, column: int, low: float, high: float) -> np.ndarray:
@@ -100,10 +96,7 @@ def _printed_part_on_a_like_table(renderer, prepared, seed: int
     image = np.clip(image + rng.normal(0, 2, image.shape), 0, 255).astype(np.uint8)
     posterior = cv2.resize(np.where(mask, 0.9, 0.1).astype(np.float32), (400, 300),
                            interpolation=cv2.INTER_AREA)
-    axis = rng.normal(size=3)
-    turn = Rotation.from_rotvec(axis / np.linalg.norm(axis) * math.radians(4.0)).as_matrix()
-    start = Pose(turn @ truth.R_m2c, truth.t_m2c * np.array([1.0, 1.0, 1.02]) + [2.5, -2.0, 0.0])
-    return truth, image, posterior, start
+    return truth, image, posterior, _perturbed(truth, rng, 4.0, 0.02)
 
 
 @pytest.mark.parametrize("seed", [0, 1, 3])

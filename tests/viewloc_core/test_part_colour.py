@@ -21,6 +21,18 @@ from viewloc_core.render import Light, prepare
 
 BLUE = (30, 70, 200)
 
+#: The camera and the grey table of the scenes of coloured brackets.
+_CAMERA = Camera(600.0, 600.0, 319.5, 239.5, 640, 480)
+
+
+def _on_grey_table(renderer, parts: list[tuple[trimesh.Trimesh, Pose]]) -> np.ndarray:
+    """(H, W, 3) uint8: the meshes at their poses on a mid-grey table, lit
+    from the upper right, seen by :data:`_CAMERA`."""
+    lights = [Light("directional", direction_cam=(0.6, 0.5, 1.0), intensity=3.0),
+              Light("ambient", intensity=0.3)]
+    return renderer.render_scene([(prepare(mesh), pose) for mesh, pose in parts], _CAMERA,
+                                 lights=lights, background_rgb=(90, 90, 90)).color
+
 
 def _scene_with_patch(colour: tuple[int, int, int], xy: tuple[int, int], half: int,
                       seed: int = 0) -> np.ndarray:
@@ -174,17 +186,13 @@ def test_the_part_is_told_from_a_look_alike_of_another_colour(orange_model, rend
     model reports the orange one, and its pose. Without its colours the
     same model reports the blue one (its outline is seen more clearly), so
     the colour decides."""
-    camera = Camera(600.0, 600.0, 319.5, 239.5, 640, 480)
+    camera = _CAMERA
     R = trimesh.transformations.euler_matrix(0.5, -0.4, 0.9)[:3, :3]
     R_blue = trimesh.transformations.euler_matrix(-0.6, 0.5, 2.4)[:3, :3]
     orange_pose = Pose(R_blue, np.array([-100.0, -20.0, 500.0]))
     blue_pose = Pose(R, np.array([90.0, 30.0, 560.0]))
-    lights = [Light("directional", direction_cam=(0.6, 0.5, 1.0), intensity=3.0),
-              Light("ambient", intensity=0.3)]
-    image = renderer.render_scene(
-        [(prepare(coloured_bracket(ORANGE)), orange_pose),
-         (prepare(coloured_bracket(BLUE)), blue_pose)],
-        camera, lights=lights, background_rgb=(90, 90, 90)).color
+    image = _on_grey_table(renderer, [(coloured_bracket(ORANGE), orange_pose),
+                                      (coloured_bracket(BLUE), blue_pose)])
     dets = localize(orange_model, image, camera).detections
     assert dets
     t = dets[0].pose.t_m2c
@@ -268,13 +276,10 @@ def test_every_fit_in_a_colour_scene_meets_the_parts_colour_boundary(
     and its fits run on the image's own edges."""
     import viewloc_core.localize as localize_module
 
-    camera = Camera(600.0, 600.0, 319.5, 239.5, 640, 480)
+    camera = _CAMERA
     pose = Pose(trimesh.transformations.euler_matrix(0.5, -0.4, 0.9)[:3, :3],
                 np.array([30.0, -20.0, 520.0]))
-    lights = [Light("directional", direction_cam=(0.6, 0.5, 1.0), intensity=3.0),
-              Light("ambient", intensity=0.3)]
-    image = renderer.render_scene([(prepare(coloured_bracket(ORANGE)), pose)], camera,
-                                  lights=lights, background_rgb=(90, 90, 90)).color
+    image = _on_grey_table(renderer, [(coloured_bracket(ORANGE), pose)])
     merged: list[object] = []
     fitted_on: list[object] = []
     add_boundary = localize_module.with_colour_boundary
