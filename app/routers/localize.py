@@ -27,7 +27,7 @@ from app.schemas import (
     MultiLocalizeOptionsIn,
 )
 from app.serialize import detection_dict
-from model_store import ModelStore, ObjectNotReadyError, is_valid_id
+from model_store import is_valid_id
 from model_store.errors import ObjectNotFoundError
 from viewloc_core.camera import Camera
 from viewloc_core.detection import Detection
@@ -67,17 +67,6 @@ def _decode(image: UploadFile, settings: Any, timing: dict[str, float]) -> np.nd
     img = decode_image(data, "image", settings.max_image_pixels)
     timing["decode"] = (time.perf_counter() - t) * 1000
     return img
-
-
-def _ready_model(store: ModelStore, object_id: str) -> Any:
-    record = store.get_object(object_id)
-    if record.state != "ready":
-        raise ObjectNotReadyError(
-            f"object {object_id} is {record.state}, not ready"
-            + (f": {record.error}" if record.error else ""),
-            "object_id",
-        )
-    return store.load_model(object_id)
 
 
 def _run(model: Any, img: np.ndarray, camera: Camera, opts: LocalizeOptionsIn,
@@ -154,7 +143,9 @@ def localize_object(
     opts = parse_json_field(options, LocalizeOptionsIn, "options")
     img = _decode(image, settings, timing)
     cam = _camera(camera, img.shape[1], img.shape[0])
-    model = _ready_model(store, object_id)
+    # 409 unless ready: the record is read again, as the object may have
+    # been deleted or relearned since the check above.
+    model = store.load_model(object_id)
     dets, core_timing = _run(model, img, cam, opts, metrics)
     # Every detection names its object, as in the multi-object answer (not null).
     dets = [dataclasses.replace(d, object_id=object_id) for d in dets]
@@ -201,7 +192,7 @@ def localize_many(
         store.get_object(oid)
     img = _decode(image, settings, timing)
     cam = _camera(camera, img.shape[1], img.shape[0])
-    models = [(oid, _ready_model(store, oid)) for oid in ids]
+    models = [(oid, store.load_model(oid)) for oid in ids]
     all_dets: list[Detection] = []
     drawn: list[tuple[Any, list[Detection]]] = []
     localize_ms = 0.0

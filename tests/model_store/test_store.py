@@ -170,3 +170,61 @@ def test_two_processes_share_one_root(tmp_path: Path) -> None:
         store.read_upload(o.object_id)  # every upload verifies
     claimed = store.list_jobs(state="running")
     assert len(claimed) == 30 and len({j.job_id for j in claimed}) == 30
+
+
+def _read_in_forked_child(store: ModelStore, object_id: str, out: object) -> None:
+    # ``store`` crossed a fork: the reader it holds is the parent's.
+    inherited = store._readers.conn
+    state = store.get_object(object_id).state
+    out.put((state, store._readers.conn is not inherited,  # type: ignore[attr-defined]
+             any(c is inherited for c in store._inherited)))
+
+
+def test_kept_read_connection_sees_every_committed_write(tmp_path: Path) -> None:
+    reader, writer = ModelStore(tmp_path), ModelStore(tmp_path)
+    obj, job = _new(writer)
+    assert reader.get_object(obj.object_id).state == "learning"  # opens the reader
+    writer.claim_next_job("f" * 32)
+    writer.delete_object(obj.object_id)
+    with pytest.raises(ObjectNotFoundError):
+        reader.get_object(obj.object_id)
+    assert reader.get_job(job.job_id).state in ("cancelled", "running")
+    # Another process's write, through its own connection.
+    ctx = multiprocessing.get_context("spawn")
+    proc = ctx.Process(target=_create_many, args=(str(tmp_path), 2))
+    proc.start()
+    proc.join(60)
+    assert proc.exitcode == 0
+    assert len(reader.list_objects()) == 2
+
+
+def test_each_thread_and_forked_child_reads_through_its_own_connection(tmp_path: Path) -> None:
+    import threading
+
+    store = ModelStore(tmp_path)
+    obj, _ = _new(store)
+    store.get_object(obj.object_id)
+    mine = store._readers.conn
+    seen: list[object] = []
+
+    def read() -> None:
+        store.get_object(obj.object_id)
+        seen.append(store._readers.conn)
+
+    worker = threading.Thread(target=read)
+    worker.start()
+    worker.join()
+    assert seen and seen[0] is not mine
+    store.get_object(obj.object_id)
+    assert store._readers.conn is mine  # kept, not reopened
+    ctx = multiprocessing.get_context("fork")
+    out = ctx.Queue()
+    child = ctx.Process(target=_read_in_forked_child, args=(store, obj.object_id, out))
+    child.start()
+    # The child read through a connection of its own and left the parent's
+    # open (closing it there could checkpoint away the parent's WAL).
+    assert out.get(timeout=60) == ("learning", True, True)
+    child.join(60)
+    assert child.exitcode == 0
+    # The parent's connection still works after the child went.
+    assert store.get_object(obj.object_id).state == "learning"
