@@ -12,6 +12,7 @@ tracking).
 from __future__ import annotations
 
 import math
+import threading
 import time
 import weakref
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -454,6 +455,108 @@ class LocalizationResult:
 #: Threads that build the refinement's edge pyramid while the alignment runs
 #: (two, as features' LSD pool: concurrent requests need not queue).
 _EDGE_POOL = ThreadPoolExecutor(max_workers=2, thread_name_prefix="viewloc-edges")
+
+
+class Scene:
+    """What localizing any part in one image starts from, done once
+    (:func:`prepare_scene`): a request for several parts in one image
+    shares it (:func:`localize_in_scene`) instead of finding the same
+    features and building the same edge pyramid for each.
+
+    Attributes
+    ----------
+    image : (H, W) or (H, W, 3) array
+        The scene as the pipeline reads it: a colour image without colours
+        as one channel (:func:`_one_channel_if_grey`).
+    camera : Camera
+        Its intrinsics.
+    factor : float
+        Search-level pixels per image pixel, at most 1.
+    level : array
+        The image at the search level (long side at most
+        :data:`MAX_SEARCH_SIDE_PX`).
+    features : ImageFeatures
+        The search level's features.
+    chance : ChanceRates
+        The search level's clutter model, for the alignment and the view search.
+    features_ms : float
+        What the features took, ms.
+    """
+
+    def __init__(self, image: NDArray[Any], camera: Camera, factor: float,
+                 level: NDArray[Any], features: ImageFeatures, chance: ChanceRates,
+                 features_ms: float, edges: Future[EdgePyramid] | None) -> None:
+        self.image = image
+        self.camera = camera
+        self.factor = factor
+        self.level = level
+        self.features = features
+        self.chance = chance
+        self.features_ms = features_ms
+        self._edges = edges
+        self._edges_lock = threading.Lock()
+
+    def edges(self) -> EdgePyramid:
+        """The refinement's edge pyramid of the image: the one started by
+        :func:`prepare_scene`, or built now when it was not asked for."""
+        with self._edges_lock:
+            if self._edges is None or self._edges.cancelled():
+                self._edges = _EDGE_POOL.submit(
+                    prepare_edges, self.image,
+                    _refine_levels(self.image.shape[1], self.image.shape[0]))
+            job = self._edges
+        return job.result()
+
+    def release(self) -> None:
+        """Stop the edge pyramid if no fit has asked for it and it has not
+        started (a pool busy with other requests): nothing to refine."""
+        with self._edges_lock:
+            if self._edges is not None:
+                self._edges.cancel()
+
+
+def prepare_scene(image: NDArray[np.generic], camera: Camera, edges: bool = True) -> Scene:
+    """The part-independent start of a localization in ``image``.
+
+    Parameters
+    ----------
+    image : (H, W) or (H, W, 3) array, uint8 or uint16
+        The scene (RGB when colour).
+    camera : Camera
+        Intrinsics of the scene camera; its width and height must match the image.
+    edges : bool
+        Start building the refinement's edge pyramid now, on another core
+        (OpenCV releases the GIL), so that it is ready when the first fit
+        needs it; False when nothing will be refined.
+
+    Returns
+    -------
+    Scene
+    """
+    arr = np.asarray(image)
+    if arr.ndim not in (2, 3) or arr.shape[0] != camera.height or arr.shape[1] != camera.width:
+        raise InvalidInputError(
+            f"image is {arr.shape[1] if arr.ndim >= 2 else '?'}x{arr.shape[0]}, camera says "
+            f"{camera.width}x{camera.height}", "camera",
+        )
+    to_grey_float(arr[:16, :16])  # dtype and channel checks, cheap
+    arr = _one_channel_if_grey(arr)
+    factor = min(1.0, MAX_SEARCH_SIDE_PX / max(arr.shape[0], arr.shape[1]))
+    level = arr
+    if factor < 1.0:
+        level = cv2.resize(arr, (round(arr.shape[1] * factor), round(arr.shape[0] * factor)),
+                           interpolation=cv2.INTER_AREA)
+    t0 = time.perf_counter()
+    feats = extract_features(level)
+    features_ms = (time.perf_counter() - t0) * 1e3
+    # The pyramid needs nothing but the image: it is built on the other core
+    # while alignment and view search run (only the levels the refinement
+    # uses, the same for its final and quick fits).
+    edges_future = (_EDGE_POOL.submit(prepare_edges, arr, _refine_levels(arr.shape[1],
+                                                                          arr.shape[0]))
+                    if edges else None)
+    return Scene(arr, camera, factor, level, feats, chance_rates(feats), features_ms,
+                 edges_future)
 
 
 _INDEX_CACHE: weakref.WeakKeyDictionary[ObjectModel, ModelIndex] = weakref.WeakKeyDictionary()
@@ -1368,38 +1471,43 @@ def localize(
         Detections best first; empty when nothing scores above ``min_score``.
     """
     t0 = time.perf_counter()
-    arr = np.asarray(image)
-    if arr.ndim not in (2, 3) or arr.shape[0] != camera.height or arr.shape[1] != camera.width:
-        raise InvalidInputError(
-            f"image is {arr.shape[1] if arr.ndim >= 2 else '?'}x{arr.shape[0]}, camera says "
-            f"{camera.width}x{camera.height}", "camera",
-        )
-    to_grey_float(arr[:16, :16])  # dtype and channel checks, cheap
-    arr = _one_channel_if_grey(arr)
-    index = model_index(model)
-    timing: dict[str, float] = {}
+    scene = prepare_scene(image, camera,
+                          edges=options.refine and _contour_model(model) is not None)
+    try:
+        result = localize_in_scene(model, scene, options)
+    finally:
+        scene.release()
+    result.timing_ms["total"] = (time.perf_counter() - t0) * 1e3
+    return result
 
-    factor = min(1.0, MAX_SEARCH_SIDE_PX / max(arr.shape[0], arr.shape[1]))
-    level = arr
-    if factor < 1.0:
-        level = cv2.resize(arr, (round(arr.shape[1] * factor), round(arr.shape[0] * factor)),
-                           interpolation=cv2.INTER_AREA)
-    t1 = time.perf_counter()
-    feats = extract_features(level)
+
+def localize_in_scene(model: ObjectModel, scene: Scene,
+                      options: LocalizeOptions = LocalizeOptions()) -> LocalizationResult:
+    """:func:`localize` in a scene already prepared (:func:`prepare_scene`),
+    perhaps shared with other parts.
+
+    Parameters
+    ----------
+    model : ObjectModel
+        A learned model.
+    scene : Scene
+        The image, its camera, features and edge pyramid.
+    options : LocalizeOptions
+
+    Returns
+    -------
+    LocalizationResult
+        Detections best first; empty when nothing scores above ``min_score``.
+        Its ``timing_ms`` gives the scene's ``features`` time, and a
+        ``total`` without it.
+    """
     t2 = time.perf_counter()
-    timing["features"] = (t2 - t1) * 1e3
+    arr, camera, factor, level = scene.image, scene.camera, scene.factor, scene.level
+    feats, chance = scene.features, scene.chance
+    index = model_index(model)
+    timing: dict[str, float] = {"features": scene.features_ms}
     contour = _contour_model(model) if options.refine else None
-    # The refinement's edge pyramid needs nothing but the image, and OpenCV
-    # releases the GIL: it is built on the other core while alignment and
-    # view search run (only the levels the refinement uses, the same for
-    # its final and quick fits).
-    edges_future: Future[EdgePyramid] | None = None
-    if contour is not None:
-        edges_future = _EDGE_POOL.submit(prepare_edges, arr,
-                                         _refine_levels(arr.shape[1], arr.shape[0]))
     config = AlignConfig()
-    # The clutter model of the image, for the alignment and the view search.
-    chance = chance_rates(feats)
     matches = align(model, index, feats, config,
                     max_matches=max(MIN_ALIGNED_LOCATIONS, 2 * options.max_detections + 1),
                     chance=chance)
@@ -1432,13 +1540,9 @@ def localize(
                                         located[: options.max_detections]))
     t4 = time.perf_counter()
     timing["views"] = (t4 - t3) * 1e3
-    edges = None
-    if edges_future is not None:
-        if located or colour_located:
-            edges = edges_future.result()
-        else:
-            # Nothing to refine: not waited for (nor built, if not started).
-            edges_future.cancel()
+    # Nothing to refine: the pyramid is not waited for (nor built, if not
+    # started, once the scene is released).
+    edges = scene.edges() if contour is not None and (located or colour_located) else None
     # Pass 2: the final fit of the best locations, as many as detections are
     # wanted. When one of them is not settled, the view search may have
     # ranked a wrong place first: the next SPARE_LOCATIONS locations are
@@ -1508,5 +1612,5 @@ def localize(
     # one above is at least that).
     detections = _non_increasing(detections)
     timing["pose"] = (time.perf_counter() - t4) * 1e3
-    timing["total"] = (time.perf_counter() - t0) * 1e3
+    timing["total"] = (time.perf_counter() - t2) * 1e3
     return LocalizationResult(detections, timing)

@@ -127,6 +127,10 @@ def test_every_endpoint_answers_as_api_md_says(
         assert many["object_ids"] == [oid] and many["image"] == {"width": 320, "height": 240}
         assert [d["object_id"] for d in many["detections"]] == [oid]
         _check_detection(many["detections"][0])
+        # The same answer as the object's own endpoint gives (the scene's
+        # features are shared between objects, not changed).
+        assert many["detections"][0]["pose"] == default["detections"][0]["pose"]
+        assert {"features", "localize"} <= set(many["timing_ms"])
         everything = c.post("/v1/localize", files={"image": scene}, data={"camera": cam}).json()
         assert everything["object_ids"] == [oid]
 

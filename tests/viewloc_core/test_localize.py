@@ -52,6 +52,8 @@ from viewloc_core.localize import (
     _surface,
     _view_candidate_count,
     localize,
+    localize_in_scene,
+    prepare_scene,
 )
 from viewloc_core.near_symmetry import NearSymmetries
 from viewloc_core.pose import Pose, rotation_angle_deg
@@ -748,3 +750,38 @@ def test_a_start_as_far_off_as_at_640_px_is_captured_in_a_1280_px_image(
     assert rot_deg < 1.0 and t_mm < 3.0
     rot_deg, t_mm = error(FINAL_REFINE)
     assert rot_deg > 2.0 or t_mm > 6.0
+
+
+def test_parts_localized_in_one_prepared_scene_get_their_own_answers(
+        renderer, bracket_model, orange_model, monkeypatch):
+    # A request for several parts finds the image's features and builds
+    # its edge pyramid once; each part's detections are those it gets alone.
+    camera = Camera(600.0, 600.0, 319.5, 239.5, 640, 480)
+    truth = Pose(Rotation.from_euler("xyz", [0.5, -0.4, 0.9]).as_matrix(),
+                 np.array([10.0, -5.0, 420.0]))
+    image = render_scene(renderer, coloured_bracket(ORANGE), camera, truth, clutter=6)
+    alone = {id(m): localize(m, image, camera).detections for m in (bracket_model, orange_model)}
+    assert all(alone.values())
+    extracted = []
+    extract = localize_module.extract_features
+    monkeypatch.setattr(localize_module, "extract_features",
+                        lambda level: extracted.append(level) or extract(level))
+    built = []
+    edges = localize_module.prepare_edges
+    monkeypatch.setattr(localize_module, "prepare_edges",
+                        lambda *args: built.append(args) or edges(*args))
+    for start_edges in (True, False):  # False: the pyramid is built when a fit needs it
+        extracted.clear()
+        built.clear()
+        scene = prepare_scene(image, camera, edges=start_edges)
+        for model in (orange_model, bracket_model):
+            result = localize_in_scene(model, scene)
+            assert result.timing_ms["features"] == scene.features_ms
+            expected = alone[id(model)]
+            assert len(result.detections) == len(expected)
+            for got, want in zip(result.detections, expected, strict=True):
+                assert got.score == want.score
+                assert np.array_equal(got.pose.R_m2c, want.pose.R_m2c)
+                assert np.array_equal(got.pose.t_m2c, want.pose.t_m2c)
+        scene.release()
+        assert len(extracted) == 1 and len(built) == 1
