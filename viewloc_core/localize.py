@@ -457,6 +457,7 @@ class LocalizationResult:
 _EDGE_POOL = ThreadPoolExecutor(max_workers=2, thread_name_prefix="viewloc-edges")
 
 
+@dataclass(eq=False)
 class Scene:
     """What localizing any part in one image starts from, done once
     (:func:`prepare_scene`): a request for several parts in one image
@@ -483,18 +484,16 @@ class Scene:
         What the features took, ms.
     """
 
-    def __init__(self, image: NDArray[Any], camera: Camera, factor: float,
-                 level: NDArray[Any], features: ImageFeatures, chance: ChanceRates,
-                 features_ms: float, edges: Future[EdgePyramid] | None) -> None:
-        self.image = image
-        self.camera = camera
-        self.factor = factor
-        self.level = level
-        self.features = features
-        self.chance = chance
-        self.features_ms = features_ms
-        self._edges = edges
-        self._edges_lock = threading.Lock()
+    image: NDArray[Any]
+    camera: Camera
+    factor: float
+    level: NDArray[Any]
+    features: ImageFeatures
+    chance: ChanceRates
+    features_ms: float
+    #: The pyramid's job, None until asked for when not started up front.
+    _edges: Future[EdgePyramid] | None = field(default=None, repr=False)
+    _edges_lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
     def edges(self) -> EdgePyramid:
         """The refinement's edge pyramid of the image: the one started by

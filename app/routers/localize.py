@@ -32,7 +32,13 @@ from model_store.errors import ObjectNotFoundError
 from viewloc_core.camera import Camera
 from viewloc_core.detection import Detection
 from viewloc_core.errors import InvalidCameraError
-from viewloc_core.localize import LocalizeOptions, localize, localize_in_scene, prepare_scene
+from viewloc_core.localize import (
+    LocalizeOptions,
+    Scene,
+    localize,
+    localize_in_scene,
+    prepare_scene,
+)
 
 router = APIRouter(tags=["localization"])
 
@@ -71,7 +77,7 @@ def _decode(image: UploadFile, settings: Any, timing: dict[str, float]) -> np.nd
 
 
 def _run(model: Any, img: np.ndarray, camera: Camera, opts: LocalizeOptionsIn,
-         metrics: Any, scene: Any = None) -> tuple[list[Detection], dict[str, float]]:
+         metrics: Any, scene: Scene | None = None) -> tuple[list[Detection], dict[str, float]]:
     """One part's detections and the core's timings (ms); in ``scene`` when
     given (shared by the parts of one request), else in ``img``."""
     t = time.perf_counter()
