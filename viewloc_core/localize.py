@@ -514,6 +514,12 @@ class Scene:
                 self._edges.cancel()
 
 
+def refines(model: ObjectModel, options: LocalizeOptions) -> bool:
+    """Whether ``model``'s fits are refined on the image's edges: when the
+    request asks for it and the model has a mesh's contours."""
+    return options.refine and model.contour is not None
+
+
 def prepare_scene(image: NDArray[np.generic], camera: Camera, edges: bool = True) -> Scene:
     """The part-independent start of a localization in ``image``.
 
@@ -1470,8 +1476,7 @@ def localize(
         Detections best first; empty when nothing scores above ``min_score``.
     """
     t0 = time.perf_counter()
-    scene = prepare_scene(image, camera,
-                          edges=options.refine and _contour_model(model) is not None)
+    scene = prepare_scene(image, camera, edges=refines(model, options))
     try:
         result = localize_in_scene(model, scene, options)
     finally:
@@ -1505,7 +1510,7 @@ def localize_in_scene(model: ObjectModel, scene: Scene,
     feats, chance = scene.features, scene.chance
     index = model_index(model)
     timing: dict[str, float] = {"features": scene.features_ms}
-    contour = _contour_model(model) if options.refine else None
+    contour = _contour_model(model) if refines(model, options) else None
     config = AlignConfig()
     matches = align(model, index, feats, config,
                     max_matches=max(MIN_ALIGNED_LOCATIONS, 2 * options.max_detections + 1),

@@ -38,6 +38,7 @@ from viewloc_core.localize import (
     localize,
     localize_in_scene,
     prepare_scene,
+    refines,
 )
 
 router = APIRouter(tags=["localization"])
@@ -76,13 +77,17 @@ def _decode(image: UploadFile, settings: Any, timing: dict[str, float]) -> np.nd
     return img
 
 
+def _core_options(opts: LocalizeOptionsIn) -> LocalizeOptions:
+    return LocalizeOptions(max_detections=opts.max_detections, min_score=opts.min_score,
+                           refine=opts.refine)
+
+
 def _run(model: Any, img: np.ndarray, camera: Camera, opts: LocalizeOptionsIn,
          metrics: Any, scene: Scene | None = None) -> tuple[list[Detection], dict[str, float]]:
     """One part's detections and the core's timings (ms); in ``scene`` when
     given (shared by the parts of one request), else in ``img``."""
     t = time.perf_counter()
-    core_options = LocalizeOptions(
-        max_detections=opts.max_detections, min_score=opts.min_score, refine=opts.refine)
+    core_options = _core_options(opts)
     result = (localize(model, img, camera, core_options) if scene is None
               else localize_in_scene(model, scene, core_options))
     metrics.localize_seconds.observe(time.perf_counter() - t)
@@ -207,8 +212,8 @@ def localize_many(
     # The image's features and edge pyramid are the same for every part:
     # found once (a colour 640x480 image: about 25 ms a part saved).
     t = time.perf_counter()
-    scene = prepare_scene(img, cam, edges=opts.refine and any(
-        model.contour is not None for _, model in models))
+    core_options = _core_options(opts)
+    scene = prepare_scene(img, cam, edges=any(refines(m, core_options) for _, m in models))
     localize_ms = (time.perf_counter() - t) * 1000
     timing["features"] = scene.features_ms
     try:
