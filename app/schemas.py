@@ -113,12 +113,37 @@ class ImagesSpec(_In):
     )
 
 
+class RegionIn(_In):
+    """An image rectangle, pixels (OpenCV convention: the top-left pixel's centre is 0, 0)."""
+
+    x: int = Field(ge=0, description="Left column.")
+    y: int = Field(ge=0, description="Top row.")
+    width: int = Field(gt=0)
+    height: int = Field(gt=0)
+
+
+class DepthRangeIn(_In):
+    """A range of depths (camera z), mm; ``max`` must be greater than ``min``."""
+
+    min: FiniteFloat = Field(gt=0)
+    max: FiniteFloat = Field(gt=0)
+
+
 class LocalizeOptionsIn(_In):
     """The ``options`` form field of localization."""
 
     max_detections: int = Field(default=1, ge=1, le=100)
     min_score: FiniteFloat | None = Field(default=None, ge=0, le=1)
     refine: bool = True
+    roi: RegionIn | None = Field(
+        default=None, description="Search only this region of the image (it must lie inside "
+        "it): the part lies within it. Poses and image positions stay in the full image's "
+        "frame.",
+    )
+    depth_mm: DepthRangeIn | None = Field(
+        default=None, description="The depths (camera z, mm) the part's origin can have: "
+        "sizes outside it are not searched, and no detection outside it is reported.",
+    )
 
 
 class MultiLocalizeOptionsIn(LocalizeOptionsIn):

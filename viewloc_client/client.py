@@ -235,17 +235,25 @@ class ViewlocClient:
     def localize(self, object_id: str | None, image: bytes | str | Path,
                  camera: dict[str, Any] | Any, *, max_detections: int = 1,
                  min_score: float | None = None, refine: bool = True,
-                 object_ids: list[str] | None = None, overlay: bool = False) -> Localization:
+                 object_ids: list[str] | None = None, overlay: bool = False,
+                 roi: tuple[int, int, int, int] | None = None,
+                 depth_mm: tuple[float, float] | None = None) -> Localization:
         """Localize one object (``object_id``) or several (``object_id=None``).
 
         ``camera`` is a dict ``{fx, fy, cx, cy[, dist]}`` or any object with
-        those attributes (e.g. ``viewloc_core.camera.Camera``).
+        those attributes (e.g. ``viewloc_core.camera.Camera``). ``roi``
+        ``(x, y, width, height)`` (pixels) is where the part's centre lies;
+        ``depth_mm`` ``(min, max)`` the depths of its origin.
         """
         import base64
 
         options: dict[str, Any] = {"max_detections": max_detections, "refine": refine}
         if min_score is not None:
             options["min_score"] = min_score
+        if roi is not None:
+            options["roi"] = dict(zip(("x", "y", "width", "height"), roi, strict=True))
+        if depth_mm is not None:
+            options["depth_mm"] = {"min": depth_mm[0], "max": depth_mm[1]}
         if object_id is None:
             path = "/v1/localize"
             if object_ids is not None:

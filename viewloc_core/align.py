@@ -743,6 +743,7 @@ def align(
     config: AlignConfig = AlignConfig(),
     max_matches: int = 5,
     chance: ChanceRates | None = None,
+    within: NDArray[np.floating] | None = None,
 ) -> list[Match2D]:
     """Find model views in an image.
 
@@ -760,6 +761,9 @@ def align(
         :func:`viewloc_core.edge_evidence.chance_rates` of ``feats``, when
         the caller has them already (the view search needs them too);
         computed here when None.
+    within : (4,) array, optional
+        ``x0, y0, x1, y1``, image pixels: only hypotheses that place the
+        model view's origin in this rectangle are searched.
 
     Returns
     -------
@@ -770,6 +774,11 @@ def align(
     if len(k) == 0:
         return []
     sims, pairing = _seeds(index, feats, k, j, config)
+    if within is not None:
+        x0, y0, x1, y1 = np.asarray(within, np.float64)
+        inside = ((sims[:, 0] >= x0) & (sims[:, 0] <= x1)
+                  & (sims[:, 1] >= y0) & (sims[:, 1] <= y1))
+        sims, pairing = sims[inside], pairing[inside]
     if len(sims) == 0:
         return []
     views = index.view_of[j[pairing]]

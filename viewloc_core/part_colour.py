@@ -330,7 +330,7 @@ class ColourProposal:
 
 
 def propose(log_ratio: F32, half_sizes_px: NDArray[np.floating], count: int,
-            ) -> list[ColourProposal]:
+            within: NDArray[np.floating] | None = None) -> list[ColourProposal]:
     """The image windows whose colours the part explains best.
 
     Parameters
@@ -341,6 +341,9 @@ def propose(log_ratio: F32, half_sizes_px: NDArray[np.floating], count: int,
         Half sides of the square windows tried, pixels.
     count : int
         Most proposals returned.
+    within : (4,) array, optional
+        ``x0, y0, x1, y1``: only windows centred in this rectangle (pixels)
+        are proposed; their sums still read the pixels outside it.
 
     Returns
     -------
@@ -371,6 +374,11 @@ def propose(log_ratio: F32, half_sizes_px: NDArray[np.floating], count: int,
         better = summed > best
         best[better] = summed[better]
         best_half[better] = np.float32(half)
+    if within is not None:
+        x0, y0, x1, y1 = np.asarray(within, np.float64)
+        rows, cols = np.arange(h), np.arange(w)
+        best[(rows < y0) | (rows > y1), :] = -np.inf
+        best[:, (cols < x0) | (cols > x1)] = -np.inf
     proposals: list[ColourProposal] = []
     for _ in range(max(count, 0)):
         flat = int(np.argmax(best))

@@ -40,6 +40,7 @@ from viewloc_core.localize import (
     prepare_scene,
     refines,
 )
+from viewloc_core.search_space import DepthRange, ImageRegion
 
 router = APIRouter(tags=["localization"])
 
@@ -78,8 +79,11 @@ def _decode(image: UploadFile, settings: Any, timing: dict[str, float]) -> np.nd
 
 
 def _core_options(opts: LocalizeOptionsIn) -> LocalizeOptions:
+    roi = (None if opts.roi is None
+           else ImageRegion(opts.roi.x, opts.roi.y, opts.roi.width, opts.roi.height))
+    depth = None if opts.depth_mm is None else DepthRange(opts.depth_mm.min, opts.depth_mm.max)
     return LocalizeOptions(max_detections=opts.max_detections, min_score=opts.min_score,
-                           refine=opts.refine)
+                           refine=opts.refine, roi=roi, depth_mm=depth)
 
 
 def _run(model: Any, img: np.ndarray, camera: Camera, opts: LocalizeOptionsIn,
@@ -146,7 +150,9 @@ def localize_object(
     metrics: MetricsDep,
     options: Annotated[
         str | None,
-        Form(description='JSON: {"max_detections": 1, "min_score": null, "refine": true}'),
+        Form(description='JSON: {"max_detections": 1, "min_score": null, "refine": true, '
+                         '"roi": {"x", "y", "width", "height"} (optional), '
+                         '"depth_mm": {"min", "max"} (optional)}'),
     ] = None,
     overlay: Overlay = False,
 ) -> dict[str, Any]:
@@ -187,6 +193,7 @@ def localize_many(
     options: Annotated[
         str | None,
         Form(description='JSON: {"object_ids": [...], "max_detections": 1, "min_score": null, '
+                         '"roi": {...}, "depth_mm": {...}, '
                          '"refine": true}'),
     ] = None,
     overlay: Overlay = False,

@@ -149,3 +149,56 @@ def test_every_endpoint_answers_as_api_md_says(
                        404)
         none_left = c.post("/v1/localize", files={"image": scene}, data={"camera": cam}).json()
         assert none_left["object_ids"] == [] and none_left["detections"] == []
+
+
+def test_a_region_and_a_depth_range_bound_where_the_part_is_looked_for(
+    learned_barbell: LearnedStore, make_server: Callable[..., LiveServer], tmp_path: Path
+) -> None:
+    learned_barbell.copy_to(tmp_path / "var")
+    srv = make_server()
+    oid = learned_barbell.object_id
+    truth = Pose.from_euler_xyz_deg(np.array([30.0, -15.0, 10.0]), np.array([5.0, 0.0, 600.0]))
+    scene = ("s.png", _scene(truth), "image/png")
+    cam = json.dumps(CAMERA)
+    u = CAMERA["fx"] * 5.0 / 600.0 + CAMERA["cx"]
+    v = CAMERA["cy"]
+
+    def ask(options: dict[str, object], path: str = f"/v1/objects/{oid}/localize",
+            ) -> httpx.Response:
+        return c.post(path, files={"image": scene},
+                      data={"camera": cam, "options": json.dumps(options)})
+
+    with httpx.Client(base_url=srv.url, timeout=60) as c:
+        around = {"x": int(u) - 60, "y": int(v) - 50, "width": 120, "height": 100}
+        found = ask({"roi": around, "depth_mm": {"min": 500, "max": 700}})
+        assert found.status_code == 200, found.text
+        dets = found.json()["detections"]
+        assert len(dets) == 1
+        assert np.linalg.norm(np.array(dets[0]["pose"]["t_mm"]) - truth.t_m2c) < 0.05 * 600
+        # Image positions stay in the whole image's pixels.
+        assert abs(dets[0]["similarity"]["x"] - u) < 10 and abs(dets[0]["similarity"]["y"] - v) < 10
+        # The multi-object endpoint reads the same options the same way.
+        many = ask({"object_ids": [oid], "roi": around, "depth_mm": {"min": 500, "max": 700}},
+                   "/v1/localize").json()
+        assert [d["pose"] for d in many["detections"]] == [dets[0]["pose"]]
+
+        # Where the part is not: no detection of it there.
+        corner = ask({"roi": {"x": 0, "y": 0, "width": 60, "height": 50}, "max_detections": 3})
+        assert corner.status_code == 200, corner.text
+        assert all(d["similarity"]["y"] < 60 for d in corner.json()["detections"])
+        farther = ask({"depth_mm": {"min": 900, "max": 1500}, "max_detections": 3}).json()
+        assert all(900 <= d["pose"]["t_mm"][2] <= 1500 for d in farther["detections"])
+        assert all(np.linalg.norm(np.array(d["pose"]["t_mm"]) - truth.t_m2c) > 100
+                   for d in farther["detections"])
+
+        # Bad options: 422 naming the field, nothing else changed.
+        assert_problem(ask({"roi": {"x": 300, "y": 0, "width": 40, "height": 10}}), 422,
+                       "options.roi")
+        assert_problem(ask({"roi": {"x": -1, "y": 0, "width": 40, "height": 10}}), 422,
+                       "options.roi.x")
+        assert_problem(ask({"roi": {"x": 0, "y": 0, "width": 40}}), 422, "options.roi.height")
+        assert_problem(ask({"depth_mm": {"min": 700, "max": 500}}), 422, "options.depth_mm.max")
+        assert_problem(ask({"depth_mm": {"min": 0, "max": 500}}), 422, "options.depth_mm.min")
+        assert_problem(ask({"roi": {"x": 300, "y": 0, "width": 40, "height": 10}},
+                           "/v1/localize"), 422, "options.roi")
+        assert c.get(f"/v1/objects/{oid}").json()["state"] == "ready"

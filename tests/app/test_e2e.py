@@ -69,6 +69,14 @@ def test_learn_and_localize_barbell_through_http(
         many = client.localize(None, buf.tobytes(), cam)
         assert many.object_ids == [object_id]
         assert many.detections[0]["object_id"] == object_id
+        # Where the part is and is not (the client's roi and depth_mm).
+        u, v = cam.project(truth.t_m2c[None])[0]
+        there = client.localize(object_id, buf.tobytes(), cam,
+                                roi=(int(u) - 50, int(v) - 40, 100, 80), depth_mm=(600.0, 800.0))
+        assert there.detections[0]["pose"] == det["pose"]
+        farther = client.localize(object_id, buf.tobytes(), cam, depth_mm=(1000.0, 2000.0),
+                                  max_detections=3).detections
+        assert all(1000.0 <= d["pose"]["t_mm"][2] <= 2000.0 for d in farther)
 
         # Latency: the same localization directly on the core vs through HTTP.
         model = ModelStore(tmp_path / "var").load_model(object_id)
