@@ -5,7 +5,7 @@ a known working distance, in a known part of the image. Said in the request
 (API ``options.roi`` and ``options.depth_mm``, HALCON's search domain and
 distance range), the search leaves out what cannot be the part: clutter
 elsewhere in the image no longer competes, and sizes the depth rules out
-are not tried. Both also make the search cheaper.
+are not tried.
 
 - :class:`ImageRegion` keeps the hypotheses whose centre lies in it
   (:meth:`ImageRegion.contains`).

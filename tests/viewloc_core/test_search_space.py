@@ -165,12 +165,16 @@ def test_no_detection_is_reported_outside_the_region(three_brackets, bracket_mod
     assert all(_which_copy(d, poses, cam) is None for d in dets)
 
 
+@pytest.mark.parametrize("wanted", [1, 3])
 @pytest.mark.parametrize(("lo", "hi", "copy"), [(500.0, 620.0, 0), (640.0, 760.0, 1),
                                                  (800.0, 950.0, 2)])
-def test_a_depth_range_finds_the_copy_at_that_depth(three_brackets, bracket_model, lo, hi, copy):
+def test_a_depth_range_finds_the_copy_at_that_depth(three_brackets, bracket_model, lo, hi, copy,
+                                                    wanted):
+    # One detection wanted: a copy at another depth that fits well is no
+    # answer, and the spare locations are tried.
     image, poses, cam = three_brackets
     dets = localize(bracket_model, image, cam,
-                    LocalizeOptions(max_detections=3, depth_mm=DepthRange(lo, hi))).detections
+                    LocalizeOptions(max_detections=wanted, depth_mm=DepthRange(lo, hi))).detections
     assert dets
     assert all(lo <= d.pose.t_m2c[2] <= hi for d in dets)
     assert [_which_copy(d, poses, cam) for d in dets][0] == copy
