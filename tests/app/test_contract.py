@@ -62,15 +62,24 @@ def _check_detection(det: dict[str, object]) -> None:
     assert float(sim["scale"]) > 0
 
 
+#: Where the served scenes show the barbell: 5 mm right of the optical axis, 600 mm away.
+SCENE_TRUTH = Pose.from_euler_xyz_deg(np.array([30.0, -15.0, 10.0]), np.array([5.0, 0.0, 600.0]))
+
+
+def _served_scene(learned_barbell: LearnedStore, make_server: Callable[..., LiveServer],
+                  tmp_path: Path) -> tuple[LiveServer, str, tuple[str, bytes, str], str]:
+    """A server of a store with the barbell learned, its object id, a scene
+    of it at SCENE_TRUTH as an upload, and the camera as its form field."""
+    learned_barbell.copy_to(tmp_path / "var")
+    scene = ("s.png", _scene(SCENE_TRUTH), "image/png")
+    return make_server(), learned_barbell.object_id, scene, json.dumps(CAMERA)
+
+
 def test_every_endpoint_answers_as_api_md_says(
     learned_barbell: LearnedStore, make_server: Callable[..., LiveServer], tmp_path: Path
 ) -> None:
-    learned_barbell.copy_to(tmp_path / "var")
-    srv = make_server()
-    oid = learned_barbell.object_id
-    truth = Pose.from_euler_xyz_deg(np.array([30.0, -15.0, 10.0]), np.array([5.0, 0.0, 600.0]))
-    scene = ("s.png", _scene(truth), "image/png")
-    cam = json.dumps(CAMERA)
+    srv, oid, scene, cam = _served_scene(learned_barbell, make_server, tmp_path)
+    truth = SCENE_TRUTH
     with httpx.Client(base_url=srv.url, timeout=60) as c:
         # Objects and jobs: shapes and RFC 3339 times.
         obj = c.get(f"/v1/objects/{oid}").json()
@@ -154,12 +163,8 @@ def test_every_endpoint_answers_as_api_md_says(
 def test_a_region_and_a_depth_range_bound_where_the_part_is_looked_for(
     learned_barbell: LearnedStore, make_server: Callable[..., LiveServer], tmp_path: Path
 ) -> None:
-    learned_barbell.copy_to(tmp_path / "var")
-    srv = make_server()
-    oid = learned_barbell.object_id
-    truth = Pose.from_euler_xyz_deg(np.array([30.0, -15.0, 10.0]), np.array([5.0, 0.0, 600.0]))
-    scene = ("s.png", _scene(truth), "image/png")
-    cam = json.dumps(CAMERA)
+    srv, oid, scene, cam = _served_scene(learned_barbell, make_server, tmp_path)
+    truth = SCENE_TRUTH
     u = CAMERA["fx"] * 5.0 / 600.0 + CAMERA["cx"]
     v = CAMERA["cy"]
 
