@@ -62,6 +62,7 @@ from viewloc_core.line_crossing import (
 )
 from viewloc_core.model import ModelView, ObjectModel
 from viewloc_core.pairing import PairingSet, strongest_pairings
+from viewloc_core.search_space import within_bounds
 from viewloc_core.seeding import seed_similarities
 from viewloc_core.similarity_fit import fit_similarities
 
@@ -775,9 +776,7 @@ def align(
         return []
     sims, pairing = _seeds(index, feats, k, j, config)
     if within is not None:
-        x0, y0, x1, y1 = np.asarray(within, np.float64)
-        inside = ((sims[:, 0] >= x0) & (sims[:, 0] <= x1)
-                  & (sims[:, 1] >= y0) & (sims[:, 1] <= y1))
+        inside = within_bounds(sims[:, :2], within)
         sims, pairing = sims[inside], pairing[inside]
     if len(sims) == 0:
         return []

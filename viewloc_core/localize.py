@@ -1571,16 +1571,16 @@ def localize_in_scene(model: ObjectModel, scene: Scene,
     index = model_index(model)
     timing: dict[str, float] = {"features": scene.features_ms}
     contour = _contour_model(model) if refines(model, options) else None
-    config = _search_config(model, scene, options.depth_mm)
     if options.roi is not None:
         options.roi.check_within(camera.width, camera.height)
+    config = _search_config(model, scene, options.depth_mm)
+    if config is None:
+        return LocalizationResult([], {**timing, "total": (time.perf_counter() - t2) * 1e3})
     # Hypotheses are placed by the part's centre; a few level pixels of
     # slack keep those of a part centred at the region's edge (the final
     # fits are held to the region itself, _in_search_space).
     within = (None if options.roi is None
               else options.roi.bounds(factor, REGION_SLACK_PX))
-    if config is None:
-        return LocalizationResult([], {**timing, "total": (time.perf_counter() - t2) * 1e3})
     matches = align(model, index, feats, config,
                     max_matches=max(MIN_ALIGNED_LOCATIONS, 2 * options.max_detections + 1),
                     chance=chance, within=within)

@@ -33,6 +33,14 @@ from viewloc_core.errors import InvalidInputError
 SCALE_MARGIN = 1.25
 
 
+def within_bounds(uv: NDArray[np.floating], bounds: NDArray[np.floating]) -> NDArray[np.bool_]:
+    """(N,) bool: which of the (N, 2) points lie in the rectangle
+    ``bounds`` = ``x0, y0, x1, y1`` (edges included)."""
+    x0, y0, x1, y1 = np.asarray(bounds, np.float64)
+    uv = np.asarray(uv, np.float64).reshape(-1, 2)
+    return np.asarray((uv[:, 0] >= x0) & (uv[:, 0] <= x1) & (uv[:, 1] >= y0) & (uv[:, 1] <= y1))
+
+
 @dataclass(frozen=True, slots=True)
 class ImageRegion:
     """An axis-aligned rectangle of the image in which the part's centre lies.
@@ -86,10 +94,7 @@ class ImageRegion:
                  margin_px: float = 0.0) -> NDArray[np.bool_]:
         """(N,) bool: which of the (N, 2) points (level pixels) lie in
         :meth:`bounds`."""
-        x0, y0, x1, y1 = self.bounds(factor, margin_px)
-        uv = np.asarray(uv, np.float64).reshape(-1, 2)
-        return np.asarray((uv[:, 0] >= x0) & (uv[:, 0] <= x1)
-                          & (uv[:, 1] >= y0) & (uv[:, 1] <= y1))
+        return within_bounds(uv, self.bounds(factor, margin_px))
 
 
 @dataclass(frozen=True, slots=True)
