@@ -36,11 +36,17 @@ def parse_json_field(text: str | None, model: type[M], field: str) -> M:
 
 
 def check_learning_spec(learning: dict[str, object] | None) -> None:
-    """Refuse unknown or bad learning options at upload time, not in the job."""
+    """Refuse unknown or bad learning options at upload time, not in the job,
+    naming the option as the request has it (``spec.learning.max_faces``)."""
     if not learning:
         return
     try:
+        from viewloc_core.errors import InvalidInputError
         from viewloc_core.learn import LearningConfig
     except ImportError:  # engine not installed: the job reports it instead
         return
-    LearningConfig.from_dict(dict(learning))
+    try:
+        LearningConfig.from_dict(dict(learning))
+    except InvalidInputError as exc:
+        raise ProblemError(422, exc.message, "validation",
+                           [(f"spec.{exc.field or 'learning'}", exc.message)]) from exc

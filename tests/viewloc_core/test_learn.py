@@ -3,7 +3,9 @@
 import cv2
 import numpy as np
 import pytest
+import trimesh
 
+from tests.viewloc_core.conftest import render_scene
 from viewloc_core.camera import Camera
 from viewloc_core.contour_model import ContourModel
 from viewloc_core.errors import Cancelled, InvalidInputError
@@ -19,8 +21,10 @@ from viewloc_core.learn import (
     learn_from_mesh,
     outline_hidden_on_black,
 )
+from viewloc_core.localize import localize
+from viewloc_core.mesh import MAX_FACES, mesh_diameter_mm
 from viewloc_core.model import model_to_arrays
-from viewloc_core.pose import Pose
+from viewloc_core.pose import Pose, rotation_angle_deg
 from viewloc_core.view_sphere import view_directions
 
 
@@ -37,6 +41,36 @@ def test_config_from_dict_validates_fields():
     with pytest.raises(InvalidInputError) as err:
         LearningConfig.from_dict({"contour_level": 5})
     assert err.value.field == "learning.contour_level"
+    assert LearningConfig.from_dict({"max_faces": 20_000}).max_faces == 20_000
+    for faces in (999, MAX_FACES + 1):
+        with pytest.raises(InvalidInputError) as err:
+            LearningConfig.from_dict({"max_faces": faces})
+        assert err.value.field == "learning.max_faces"
+
+
+def test_a_dense_mesh_is_learned_from_its_simplification(renderer, bracket_mesh, bracket_model):
+    # The bracket cut into 9,216 faces (the same shape): learned from 1,000
+    # of them, in the uploaded mesh's own frame and size, and still fitted
+    # to the millimetre in a render of the dense mesh.
+    vertices, faces = bracket_mesh.vertices, bracket_mesh.faces
+    for _ in range(4):
+        vertices, faces = trimesh.remesh.subdivide(vertices, faces)
+    dense = trimesh.Trimesh(vertices, faces, process=False)
+    assert len(dense.faces) == 256 * len(bracket_mesh.faces) > 9_000
+    stages = []
+    model = learn_from_mesh(dense, LearningConfig(max_level=1, min_level=1, max_faces=1_000),
+                            progress=lambda stage, fraction: stages.append(stage))
+    assert stages[0] == "simplifying the mesh to 1000 faces"
+    assert model.mesh_faces is not None and len(model.mesh_faces) <= 1_000
+    assert model.diameter_mm == pytest.approx(mesh_diameter_mm(dense), abs=1e-9)
+    np.testing.assert_allclose(model.origin_offset_mm, bracket_model.origin_offset_mm, atol=1e-9)
+    cam = Camera(560.0, 560.0, 319.5, 239.5, 640, 480)
+    pose = Pose(view_directions(1)[9].R_m2c, np.array([30.0, -20.0, 650.0]))
+    image = render_scene(renderer, dense, cam, pose)
+    dets = localize(model, image, cam).detections
+    assert dets
+    assert np.linalg.norm(dets[0].pose.t_m2c - pose.t_m2c) < 3.0
+    assert rotation_angle_deg(dets[0].pose.R_m2c, pose.R_m2c) < 1.5
 
 
 def test_dense_meshes_get_fewer_contour_views_down_to_level_2():
