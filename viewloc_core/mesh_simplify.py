@@ -53,7 +53,12 @@ def simplified(mesh: trimesh.Trimesh, max_faces: int) -> trimesh.Trimesh:
         raise ValueError(f"max_faces must be at least 4, got {max_faces}")
     if len(mesh.faces) <= max_faces:
         return mesh
-    reduced = mesh.simplify_quadric_decimation(face_count=max_faces)
+    # fast_simplification takes only writeable arrays, and a mesh's may be
+    # read-only views of trimesh's cache (a mesh built from another's
+    # ``triangles``): it gets fresh copies.
+    source = trimesh.Trimesh(np.array(mesh.vertices, np.float64), np.array(mesh.faces, np.int64),
+                             process=False)
+    reduced = source.simplify_quadric_decimation(face_count=max_faces)
     colours = mesh_vertex_colours(mesh)
     out = trimesh.Trimesh(np.asarray(reduced.vertices, np.float64),
                           np.asarray(reduced.faces, np.int64), process=False)

@@ -54,6 +54,26 @@ def test_a_dense_mesh_keeps_its_shape_within_the_budget(budget):
     assert out.volume == pytest.approx(DENSE.volume, rel=0.03)
 
 
+def test_a_mesh_on_read_only_arrays_is_simplified():
+    # Built from another mesh's cached triangles: its vertices are a
+    # read-only view, which the decimation library refuses as it is.
+    sphere = trimesh.creation.icosphere(subdivisions=5, radius=RADIUS_MM)
+    soup = trimesh.Trimesh(sphere.triangles.reshape(-1, 3),
+                           np.arange(3 * len(sphere.faces)).reshape(-1, 3), process=False)
+    assert not soup.vertices.view(np.ndarray).flags.writeable
+    out = simplified(soup, 2_000)
+    assert 0 < len(out.faces) <= 2_000
+
+
+def test_every_body_of_a_mesh_keeps_its_place():
+    small = trimesh.creation.icosphere(subdivisions=5, radius=20.0)
+    other = small.copy()
+    other.apply_translation([100.0, 0.0, 0.0])
+    out = simplified(trimesh.util.concatenate([small, other]), 3_000)
+    assert len(out.split(only_watertight=False)) == 2
+    np.testing.assert_allclose(out.bounds, [[-20.0, -20.0, -20.0], [120.0, 20.0, 20.0]], atol=0.5)
+
+
 def test_vertex_colours_follow_the_surface():
     mesh = DENSE.copy()
     # Two halves: red where x > centre, blue elsewhere.
