@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from model_store.files import atomic_write_bytes
+from viewloc_bench.lmo import derived_mesh
 from viewloc_bench.sets import BenchObject
 from viewloc_core.mesh import mesh_vertex_colours
 
@@ -28,36 +28,31 @@ SUBDIVISIONS = 3
 
 def dense_mesh(mesh_path: Path, out_dir: Path, subdivisions: int = SUBDIVISIONS) -> Path:
     """The mesh at ``mesh_path`` subdivided ``subdivisions`` times, as a PLY
-    in ``out_dir`` (written once, atomically).
+    in ``out_dir`` (written once, :func:`viewloc_bench.lmo.derived_mesh`).
 
     Returns
     -------
     Path
         The dense PLY, vertex colours kept when the source has them.
     """
+
+    def subdivided(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
+        vertices, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+        rgb = mesh_vertex_colours(mesh)
+        colours = None if rgb is None else rgb.astype(np.float64)
+        for _ in range(subdivisions):
+            if colours is None:
+                vertices, faces = trimesh.remesh.subdivide(vertices, faces)
+            else:
+                vertices, faces, attributes = trimesh.remesh.subdivide(
+                    vertices, faces, vertex_attributes={"rgb": colours})
+                colours = attributes["rgb"]
+        return trimesh.Trimesh(vertices, faces, process=False,
+                               vertex_colors=None if colours is None
+                               else np.round(colours).astype(np.uint8))
+
     dest = Path(out_dir) / f"{Path(mesh_path).stem}_x{4**subdivisions}.ply"
-    if dest.exists():
-        return dest
-    mesh = trimesh.load(mesh_path, force="mesh", process=False)
-    assert isinstance(mesh, trimesh.Trimesh)
-    vertices, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
-    rgb = mesh_vertex_colours(mesh)
-    colours = None if rgb is None else rgb.astype(np.float64)
-    for _ in range(subdivisions):
-        if colours is None:
-            vertices, faces = trimesh.remesh.subdivide(vertices, faces)
-        else:
-            vertices, faces, attributes = trimesh.remesh.subdivide(
-                vertices, faces, vertex_attributes={"rgb": colours})
-            colours = attributes["rgb"]
-    dense = trimesh.Trimesh(vertices, faces, process=False,
-                            vertex_colors=None if colours is None
-                            else np.round(colours).astype(np.uint8))
-    data = dense.export(file_type="ply")
-    assert isinstance(data, bytes)  # PLY is binary
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_bytes(dest, data)
-    return dest
+    return derived_mesh(mesh_path, dest, subdivided)
 
 
 def dense_object(obj: BenchObject, out_dir: Path,

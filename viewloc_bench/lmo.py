@@ -145,30 +145,40 @@ def prepare(
     return folder, time.perf_counter() - t0
 
 
+def derived_mesh(mesh_path: Path, dest: Path,
+                 derive: Callable[[trimesh.Trimesh], trimesh.Trimesh]) -> Path:
+    """The mesh at ``mesh_path`` changed by ``derive``, as the PLY ``dest``.
+
+    Written once, atomically (:func:`model_store.files.atomic_write_bytes`):
+    a run stopped halfway leaves no partial mesh behind, and a later run
+    reads the file it finds.
+    """
+    if dest.exists():
+        return dest
+    mesh = trimesh.load(mesh_path, force="mesh", process=False)
+    assert isinstance(mesh, trimesh.Trimesh)
+    data = derive(mesh).export(file_type="ply")
+    assert isinstance(data, bytes)  # PLY is binary
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_bytes(dest, data)
+    return dest
+
+
 def grey_mesh(mesh_path: Path, out_dir: Path) -> Path:
     """The mesh at ``mesh_path`` without its colours, as ``out_dir/<same name>``.
 
     Only the vertices and faces are kept (the geometry the parts are
-    measured against is untouched). Written once, atomically
-    (:func:`model_store.files.atomic_write_bytes`): a run stopped halfway
-    leaves no partial mesh behind.
+    measured against is untouched); written once (:func:`derived_mesh`).
 
     Returns
     -------
     Path
         The colourless PLY.
     """
-    dest = Path(out_dir) / Path(mesh_path).name
-    if dest.exists():
-        return dest
-    mesh = trimesh.load(mesh_path, force="mesh", process=False)
-    assert isinstance(mesh, trimesh.Trimesh)
-    plain = trimesh.Trimesh(np.asarray(mesh.vertices), np.asarray(mesh.faces), process=False)
-    data = plain.export(file_type="ply")
-    assert isinstance(data, bytes)  # PLY is binary
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_bytes(dest, data)
-    return dest
+    return derived_mesh(
+        mesh_path, Path(out_dir) / Path(mesh_path).name,
+        lambda mesh: trimesh.Trimesh(np.asarray(mesh.vertices), np.asarray(mesh.faces),
+                                     process=False))
 
 
 def load(
