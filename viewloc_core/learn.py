@@ -49,6 +49,7 @@ from viewloc_core.features import (
 from viewloc_core.mesh import MAX_FACES
 from viewloc_core.model import ModelView, ObjectModel, TrainingViews
 from viewloc_core.part_colour import ColourAccumulator
+from viewloc_core.pose import Pose
 from viewloc_core.symmetry import Symmetries
 from viewloc_core.view_sphere import direction_from_angles, view_directions, view_rotation
 
@@ -172,6 +173,13 @@ class LearningConfig:
         10,000 faces (the can has 45,666) gave AR_MSSD / AR_MSPD 0.151 /
         0.207 against 0.174 / 0.239 (every 4th photo). Every bench part has
         at most 50,000 faces, so none is simplified.
+    visual_hull : bool
+        Learning from photos with masks also carves the part's visual hull
+        (:mod:`viewloc_core.visual_hull`) and learns its outline as the
+        contour model, so the part's fits are refined as a mesh's are.
+        Without masks (or with fewer than
+        :data:`viewloc_core.visual_hull.MIN_HULL_VIEWS`) there is no hull,
+        and a pose is its nearest training view's.
     """
 
     max_level: int = 2
@@ -186,6 +194,7 @@ class LearningConfig:
     join_min_fit: float = 0.7
     seed: int = 0
     max_faces: int = 50_000
+    visual_hull: bool = True
 
     @classmethod
     def from_dict(cls, data: dict[str, Any] | None) -> LearningConfig:
@@ -203,7 +212,10 @@ class LearningConfig:
             if key not in known:
                 raise InvalidInputError(f"unknown learning option {key!r}", f"learning.{key}")
             default = getattr(cls(), key)
-            if isinstance(default, int) and not isinstance(default, bool):
+            if isinstance(default, bool):
+                if not isinstance(value, bool):
+                    raise InvalidInputError("must be true or false", f"learning.{key}")
+            elif isinstance(default, int):
                 if isinstance(value, bool) or not isinstance(value, int):
                     raise InvalidInputError("must be an integer", f"learning.{key}")
             elif isinstance(default, float):
@@ -310,6 +322,16 @@ def _canonical_camera(config: LearningConfig, diameter_mm: float) -> tuple[float
     f = config.object_px * d0 / diameter_mm
     size = int(math.ceil(config.object_px * 1.25 / 2.0) * 2)
     return d0, f, size
+
+
+def _inplane_rotation(inplane_deg: float) -> NDArray[np.float64]:
+    """(3, 3) turn of a camera about its optical axis by ``inplane_deg``
+    (:attr:`TrainingView.inplane_deg`): a photo's rotation is this times its
+    view's (:func:`_canonical_map` undoes it)."""
+    a = math.radians(inplane_deg)
+    return np.array([[math.cos(a), -math.sin(a), 0.0],
+                     [math.sin(a), math.cos(a), 0.0],
+                     [0.0, 0.0, 1.0]])
 
 
 def _canonical_map(camera: Camera, view: TrainingView, d0_mm: float, f_px: float,
@@ -709,8 +731,6 @@ def learn_from_mesh(
     samples: list[_ViewSample] = []
     angles: list[tuple[float, float]] = []
     views_seen: list[NDArray[np.uint8]] = []
-    from viewloc_core.pose import Pose
-
     with Renderer() as renderer:
         prepared = prepare(centred)
         # Only a mesh with colours of its own says what colour the part is.
@@ -845,6 +865,8 @@ def learn_from_images(
     clusterer = _Clusterer(config, c)
     colours = ColourAccumulator(config.seed)
     rotations, samples, angles = [], [], []
+    # Per photo, its pose (object to photo camera), for the visual hull.
+    photo_poses: list[Pose] = []
     for i, (image, view) in enumerate(zip(images, views, strict=True)):
         _check_should_stop(should_stop)
         if progress is not None:
@@ -873,8 +895,32 @@ def learn_from_images(
         rotations.append(view_rotation(direction))
         samples.append(sample)
         angles.append((view.azimuth_deg, view.polar_deg))
+        photo_poses.append(Pose(_inplane_rotation(view.inplane_deg) @ rotations[-1],
+                                np.array([0.0, 0.0, view.distance_mm])))
+    hull = None
+    if config.visual_hull and masks is not None:
+        from viewloc_core.visual_hull import visual_hull
+
+        if progress is not None:
+            progress("carving the visual hull", 0.95)
+        hull = visual_hull(masks, photo_poses, camera, diameter_mm)
+    contour = None
+    if hull is not None:
+        from viewloc_core.contour_model import build_contour_model
+        from viewloc_core.render import Renderer
+
+        if progress is not None:
+            progress("building contour model", 0.97)
+        # The hull's outline is the photos' own; its creases are where the
+        # cones meet, not the part's, so only the outline is fitted.
+        level = contour_view_level(config.contour_level, len(hull.faces))
+        contour_dirs = np.array([v.direction for v in view_directions(level,
+                                                                      config.max_polar_deg)])
+        with Renderer() as renderer:
+            contour = build_contour_model(hull, contour_dirs, renderer, d0, f,
+                                          (size, size)).outline_only().to_arrays()
     if progress is not None:
         progress("finishing", 1.0)
     model = _finish(clusterer, rotations, samples, angles, "images", diameter_mm, d0, f, size,
-                    np.zeros(3), config, None)
-    return replace(model, colour_histogram=colours.histogram())
+                    np.zeros(3), config, hull)
+    return replace(model, colour_histogram=colours.histogram(), contour=contour)

@@ -1,0 +1,120 @@
+"""Visual hull from masked photos: it holds the part, and its outline is the masks'."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+import trimesh
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from viewloc_core import visual_hull as vh
+from viewloc_core.camera import Camera
+from viewloc_core.pose import Pose
+from viewloc_core.view_sphere import view_directions
+
+CAMERA = Camera(700.0, 700.0, 319.5, 239.5, 640, 480)
+DISTANCE_MM = 450.0
+
+
+def _silhouette(mesh: trimesh.Trimesh, pose: Pose, camera: Camera = CAMERA) -> np.ndarray:
+    """(H, W) bool: the pixels whose centres some projected face covers."""
+    uv = camera.project(pose.transform(mesh.vertices))
+    mask = np.zeros((camera.height, camera.width), np.uint8)
+    # Faces filled at 1/16 px (cv2's shift) so the edge follows the
+    # projection, not the vertices rounded to whole pixels.
+    # One face at a time: fillPoly's even-odd rule would empty overlaps.
+    for face in np.rint(uv[mesh.faces] * 16).astype(np.int32):
+        cv2.fillConvexPoly(mask, face, 1, lineType=cv2.LINE_8, shift=4)
+    return mask > 0
+
+
+def _photos(mesh: trimesh.Trimesh, level: int = 2) -> tuple[list[np.ndarray], list[Pose]]:
+    poses = [Pose(v.R_m2c, np.array([0.0, 0.0, DISTANCE_MM])) for v in view_directions(level)]
+    return [_silhouette(mesh, p) for p in poses], poses
+
+
+def _outside_share(a: np.ndarray, b: np.ndarray) -> float:
+    """Share of ``a``'s pixels more than a pixel away from ``b``'s."""
+    near_b = cv2.dilate(b.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    return float((a & ~near_b).sum() / max(1, a.sum()))
+
+
+@settings(max_examples=4, deadline=None)
+@given(sides=st.tuples(*[st.floats(min_value=30.0, max_value=110.0)] * 3),
+       angles=st.tuples(*[st.floats(min_value=-180.0, max_value=180.0)] * 3),
+       shift=st.tuples(*[st.floats(min_value=-10.0, max_value=10.0)] * 3))
+def test_the_hull_of_a_box_holds_it_and_shows_its_outline(sides, angles, shift):
+    box = trimesh.creation.box(extents=sides)
+    box.apply_transform(trimesh.transformations.euler_matrix(*np.radians(angles)))
+    box.apply_translation(shift)
+    diameter = float(np.linalg.norm(sides))
+    masks, poses = _photos(box)
+    hull = vh.visual_hull(masks, poses, CAMERA, diameter)
+    assert hull is not None and hull.is_watertight and len(hull.faces) <= vh.HULL_MAX_FACES
+    # A superset of the box, a little larger where no photo grazes a face
+    # (perspective views 13° apart leave its middle a low pyramid).
+    assert box.volume * 0.97 < hull.volume < box.volume * 1.35
+    lo, hi = box.bounds
+    step = float(np.max(hi - lo)) / vh.HULL_VOXELS
+    assert np.all(hull.bounds[0] < lo + 2 * step) and np.all(hull.bounds[1] > hi - 2 * step)
+    assert np.all(hull.bounds[0] > lo - 0.06 * diameter)
+    assert np.all(hull.bounds[1] < hi + 0.06 * diameter)
+    # From each photo's viewpoint the hull's outline is the photo's mask,
+    # to about a pixel (the voxels are about a third of one).
+    for mask, pose in zip(masks[::20], poses[::20], strict=True):
+        shown = _silhouette(hull, pose)
+        assert _outside_share(shown, mask) < 0.01 and _outside_share(mask, shown) < 0.01
+
+
+def test_a_concave_part_keeps_the_notch_the_photos_see_through():
+    # An L: two slabs; the notch between their arms is seen from the side.
+    arm_a = trimesh.creation.box(extents=(80.0, 20.0, 30.0))
+    arm_a.apply_translation((0.0, -30.0, 0.0))
+    arm_b = trimesh.creation.box(extents=(20.0, 80.0, 30.0))
+    arm_b.apply_translation((-30.0, 0.0, 0.0))
+    part = trimesh.util.concatenate([arm_a, arm_b])
+    masks, poses = _photos(part)
+    hull = vh.visual_hull(masks, poses, CAMERA, 120.0)
+    assert hull is not None
+    # The notch's corner (20, 20, 0) is empty, the L's own corner full,
+    # and the notch is carved away: the hull is far from the L's bounding box.
+    winding = _winding_number(hull, np.array([[20.0, 20.0, 0.0], [-30.0, -30.0, 0.0]]))
+    assert winding[0] < 0.5 < winding[1]
+    l_volume = 2 * 80.0 * 20.0 * 30.0 - 20.0 * 20.0 * 30.0
+    assert 0.97 * l_volume < hull.volume < 1.3 * l_volume < 80.0 * 80.0 * 30.0
+
+
+def _winding_number(mesh: trimesh.Trimesh, points: np.ndarray) -> np.ndarray:
+    """Generalised winding number of ``mesh`` at ``points`` (1 inside, 0 outside)."""
+    tri = mesh.triangles[None] - points[:, None, None]  # (P, F, 3, 3)
+    a, b, c = tri[..., 0, :], tri[..., 1, :], tri[..., 2, :]
+    la, lb, lc = (np.linalg.norm(x, axis=-1) for x in (a, b, c))
+    det = np.einsum("pfi,pfi->pf", a, np.cross(b, c))
+    den = (la * lb * lc + np.einsum("pfi,pfi->pf", a, b) * lc
+           + np.einsum("pfi,pfi->pf", b, c) * la + np.einsum("pfi,pfi->pf", c, a) * lb)
+    return np.asarray(np.arctan2(det, den).sum(axis=1) / (2 * np.pi))
+
+
+def test_too_few_masks_or_no_common_volume_give_no_hull():
+    box = trimesh.creation.box(extents=(60.0, 40.0, 30.0))
+    masks, poses = _photos(box)
+    few: list[np.ndarray | None] = [None] * len(masks)
+    for i in range(vh.MIN_HULL_VIEWS - 1):
+        few[i] = masks[i]
+    assert vh.visual_hull(few, poses, CAMERA, 80.0) is None
+    # Empty masks: nothing survives the carving.
+    empty = [np.zeros_like(m) for m in masks]
+    assert vh.visual_hull(empty, poses, CAMERA, 80.0) is None
+
+
+def test_one_photo_whose_mask_misses_part_of_the_part_is_outvoted():
+    box = trimesh.creation.box(extents=(60.0, 40.0, 30.0))
+    masks, poses = _photos(box)
+    clean = vh.visual_hull(masks, poses, CAMERA, 80.0)
+    damaged = [m.copy() for m in masks]
+    damaged[7][:, : CAMERA.width // 2] = False  # half of one mask lost
+    hull = vh.visual_hull(damaged, poses, CAMERA, 80.0)
+    assert clean is not None and hull is not None
+    assert hull.volume == pytest.approx(clean.volume, rel=0.02)
