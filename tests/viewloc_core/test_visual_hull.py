@@ -58,7 +58,9 @@ def test_the_hull_of_a_box_holds_it_and_shows_its_outline(sides, angles, shift):
     assert box.volume * 0.97 < hull.volume < box.volume * 1.35
     lo, hi = box.bounds
     step = float(np.max(hi - lo)) / vh.HULL_VOXELS
-    assert np.all(hull.bounds[0] < lo + 2 * step) and np.all(hull.bounds[1] > hi - 2 * step)
+    # Its corners are rounded by about two voxels (the occupancy is
+    # smoothed before the surface is taken), a turned box's extremes are corners.
+    assert np.all(hull.bounds[0] < lo + 4 * step) and np.all(hull.bounds[1] > hi - 4 * step)
     assert np.all(hull.bounds[0] > lo - 0.06 * diameter)
     assert np.all(hull.bounds[1] < hi + 0.06 * diameter)
     # From each photo's viewpoint the hull's outline is the photo's mask,
