@@ -198,6 +198,8 @@ def test_from_images_bad_input_is_4xx_naming_the_field(
             (post(two, _spec(camera={"fx": 500.0, "cx": 1.0, "cy": 1.0})), 422,
              "spec.camera.fy"),
             (post(two, _spec(camera={**CAMERA, "fx": -1.0})), 422, "spec.camera.fx"),
+            (post(two, _spec(learning={"visual_hull": "yes"})), 422,
+             "spec.learning.visual_hull"),
             (post(two, _spec(camera={**CAMERA, "width": 640})), 422, "spec.camera"),
             (post(two, _spec(camera={**CAMERA, "dist": [0.1]})), 422, "spec.camera.dist"),
             (post(two, "[1, 2"), 422, "spec"),
