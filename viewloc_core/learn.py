@@ -901,6 +901,7 @@ def learn_from_images(
     if config.visual_hull and masks is not None:
         from viewloc_core.visual_hull import visual_hull
 
+        _check_should_stop(should_stop)
         if progress is not None:
             progress("carving the visual hull", 0.95)
         hull = visual_hull(masks, photo_poses, camera, diameter_mm)
@@ -909,6 +910,7 @@ def learn_from_images(
         from viewloc_core.contour_model import build_contour_model
         from viewloc_core.render import Renderer
 
+        _check_should_stop(should_stop)
         if progress is not None:
             progress("building contour model", 0.97)
         # The hull's outline is the photos' own; its creases are where the
