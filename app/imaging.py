@@ -14,7 +14,9 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from viewloc_core.camera import Camera
+# The from-images task's lens removal lives with the camera model; kept
+# importable from here.
+from viewloc_core.camera import undistort as undistort
 from viewloc_core.errors import InvalidImageError
 
 FORMATS = ("png", "jpeg", "tiff", "bmp")
@@ -175,43 +177,3 @@ def encode_png(image: NDArray[np.uint8]) -> bytes:
     if not ok:
         raise InvalidImageError("could not encode the overlay as PNG", "overlay")
     return bytes(buf.tobytes())
-
-
-def undistort(
-    image: NDArray[Any], camera: Camera, nearest: bool = False
-) -> tuple[NDArray[Any], Camera]:
-    """The image as a distortion-free camera with the same K would have taken it.
-
-    Used for the training photos of ``from-images``: the engine's
-    ``learn_from_images`` maps each photo to its canonical view with an affine
-    warp and does not model the lens, so the task removes the distortion first
-    and hands the engine the same K without coefficients. (Localization needs
-    no such step: the engine takes ``dist`` into account in its rays and its
-    refinement, so scenes go to it as taken.)
-
-    Parameters
-    ----------
-    image : (H, W) or (H, W, C) uint8 or uint16
-        Pixels as taken by ``camera``.
-    camera : Camera
-        Its intrinsics, with or without distortion.
-    nearest : bool
-        Nearest-neighbour resampling (for masks and labels).
-
-    Returns
-    -------
-    image : same shape and dtype
-        Unchanged (the same array) when the camera has no distortion.
-    camera : Camera
-        ``camera`` without distortion coefficients.
-    """
-    if not camera.has_distortion:
-        return image, camera
-    h, w = image.shape[:2]
-    K = camera.K
-    map_x, map_y = cv2.initUndistortRectifyMap(
-        K, np.asarray(camera.dist, np.float64), None, K, (w, h), cv2.CV_32FC1
-    )
-    flags = cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR
-    out = cv2.remap(image, map_x, map_y, flags, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-    return out, Camera(camera.fx, camera.fy, camera.cx, camera.cy, w, h)

@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -196,3 +198,43 @@ def _distort(
     xd = xn * radial + 2 * p1 * xn * yn + p2 * (r2 + 2 * xn * xn)
     yd = yn * radial + p1 * (r2 + 2 * yn * yn) + 2 * p2 * xn * yn
     return xd, yd
+
+
+def undistort(
+    image: NDArray[Any], camera: Camera, nearest: bool = False
+) -> tuple[NDArray[Any], Camera]:
+    """The image as a distortion-free camera with the same K would have taken it.
+
+    Used for the training photos of ``from-images`` (the task removes the
+    distortion first and hands the engine the same K without coefficients)
+    and for their masks where the visual hull is carved through the pinhole
+    alone (:mod:`viewloc_core.visual_hull`). Localization needs no such step:
+    the engine takes ``dist`` into account in its rays and its refinement, so
+    scenes go to it as taken.
+
+    Parameters
+    ----------
+    image : (H, W) or (H, W, C) uint8 or uint16
+        Pixels as taken by ``camera``.
+    camera : Camera
+        Its intrinsics, with or without distortion.
+    nearest : bool
+        Nearest-neighbour resampling (for masks and labels).
+
+    Returns
+    -------
+    image : same shape and dtype
+        Unchanged (the same array) when the camera has no distortion.
+    camera : Camera
+        ``camera`` without distortion coefficients.
+    """
+    if not camera.has_distortion:
+        return image, camera
+    h, w = image.shape[:2]
+    K = camera.K
+    map_x, map_y = cv2.initUndistortRectifyMap(
+        K, np.asarray(camera.dist, np.float64), None, K, (w, h), cv2.CV_32FC1
+    )
+    flags = cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR
+    out = cv2.remap(image, map_x, map_y, flags, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    return out, Camera(camera.fx, camera.fy, camera.cx, camera.cy, w, h)

@@ -49,7 +49,7 @@ from viewloc_core.features import (
 from viewloc_core.mesh import MAX_FACES
 from viewloc_core.model import ModelView, ObjectModel, TrainingViews
 from viewloc_core.part_colour import ColourAccumulator
-from viewloc_core.pose import Pose
+from viewloc_core.pose import Pose, rot_z
 from viewloc_core.symmetry import Symmetries
 from viewloc_core.view_sphere import direction_from_angles, view_directions, view_rotation
 
@@ -315,6 +315,13 @@ class _ViewSample:
     edge_theta: NDArray[np.float64]
 
 
+def _contour_directions(config: LearningConfig, n_faces: int) -> NDArray[np.float64]:
+    """(V, 3) unit directions (object origin to camera) of the contour
+    model's views of a mesh of ``n_faces`` faces (:func:`contour_view_level`)."""
+    level = contour_view_level(config.contour_level, n_faces)
+    return np.array([v.direction for v in view_directions(level, config.max_polar_deg)])
+
+
 def _canonical_camera(config: LearningConfig, diameter_mm: float) -> tuple[float, float, int]:
     """(d0_mm, f_train_px, size_px) of the canonical training camera."""
     # A distance of a few diameters keeps perspective mild, like the scenes.
@@ -322,16 +329,6 @@ def _canonical_camera(config: LearningConfig, diameter_mm: float) -> tuple[float
     f = config.object_px * d0 / diameter_mm
     size = int(math.ceil(config.object_px * 1.25 / 2.0) * 2)
     return d0, f, size
-
-
-def _inplane_rotation(inplane_deg: float) -> NDArray[np.float64]:
-    """(3, 3) turn of a camera about its optical axis by ``inplane_deg``
-    (:attr:`TrainingView.inplane_deg`): a photo's rotation is this times its
-    view's (:func:`_canonical_map` undoes it)."""
-    a = math.radians(inplane_deg)
-    return np.array([[math.cos(a), -math.sin(a), 0.0],
-                     [math.sin(a), math.cos(a), 0.0],
-                     [0.0, 0.0, 1.0]])
 
 
 def _canonical_map(camera: Camera, view: TrainingView, d0_mm: float, f_px: float,
@@ -774,10 +771,8 @@ def learn_from_mesh(
         # 3D contour points per direction of a finer sphere than training
         # needs (see contour_level), in the centred frame the poses are
         # computed in, for the pose refinement (§5.2).
-        level = contour_view_level(config.contour_level, len(centred.faces))
-        contour_dirs = np.array([v.direction for v in view_directions(level,
-                                                                      config.max_polar_deg)])
-        contour = build_contour_model(centred, contour_dirs, renderer, d0, f, (size, size))
+        contour = build_contour_model(centred, _contour_directions(config, len(centred.faces)),
+                                      renderer, d0, f, (size, size))
         # A part whose own views do not show its creases (a dark part) is
         # fitted and scored by its outline alone (crease_visibility).
         if not creases_show(*confirmed_shares(contour, views_seen, rotations, camera, d0)):
@@ -895,7 +890,7 @@ def learn_from_images(
         rotations.append(view_rotation(direction))
         samples.append(sample)
         angles.append((view.azimuth_deg, view.polar_deg))
-        photo_poses.append(Pose(_inplane_rotation(view.inplane_deg) @ rotations[-1],
+        photo_poses.append(Pose(rot_z(math.radians(view.inplane_deg)) @ rotations[-1],
                                 np.array([0.0, 0.0, view.distance_mm])))
     hull = None
     if config.visual_hull and masks is not None:
@@ -915,12 +910,9 @@ def learn_from_images(
             progress("building contour model", 0.97)
         # The hull's outline is the photos' own; its creases are where the
         # cones meet, not the part's, so only the outline is fitted.
-        level = contour_view_level(config.contour_level, len(hull.faces))
-        contour_dirs = np.array([v.direction for v in view_directions(level,
-                                                                      config.max_polar_deg)])
         with Renderer() as renderer:
-            contour = build_contour_model(hull, contour_dirs, renderer, d0, f,
-                                          (size, size)).outline_only().to_arrays()
+            contour = build_contour_model(hull, _contour_directions(config, len(hull.faces)),
+                                          renderer, d0, f, (size, size)).outline_only().to_arrays()
     if progress is not None:
         progress("finishing", 1.0)
     model = _finish(clusterer, rotations, samples, angles, "images", diameter_mm, d0, f, size,

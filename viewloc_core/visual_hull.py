@@ -27,14 +27,13 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
-import cv2
 import numpy as np
 import trimesh
 from numba import njit
 from numpy.typing import NDArray
 from scipy import ndimage
 
-from viewloc_core.camera import Camera
+from viewloc_core.camera import Camera, undistort
 from viewloc_core.mesh_simplify import simplified
 from viewloc_core.pose import Pose
 
@@ -134,20 +133,6 @@ def _kept(points_mm: NDArray[np.float64], rotations: NDArray[np.float64],
     return misses <= tolerance
 
 
-def _pinhole_masks(masks: Sequence[NDArray[np.bool_]], camera: Camera) -> list[NDArray[np.bool_]]:
-    """The masks as the same camera without its lens distortion would see
-    them (nearest pixel): the carving projects through the pinhole alone."""
-    if not camera.has_distortion:
-        return list(masks)
-    v, u = np.mgrid[0:camera.height, 0:camera.width].astype(np.float64)
-    rays = np.column_stack([((u - camera.cx) / camera.fx).ravel(),
-                            ((v - camera.cy) / camera.fy).ravel(), np.ones(u.size)])
-    uv = camera.project(rays).astype(np.float32)
-    map_x = uv[:, 0].reshape(u.shape)
-    map_y = uv[:, 1].reshape(u.shape)
-    return [cv2.remap(m.astype(np.uint8), map_x, map_y, cv2.INTER_NEAREST) > 0 for m in masks]
-
-
 def _grid(lo: NDArray[np.float64], hi: NDArray[np.float64], step: float,
           ) -> tuple[NDArray[np.float64], tuple[int, int, int]]:
     """Voxel centres (N, 3) of the box ``lo``..``hi`` at ``step`` mm, x
@@ -189,8 +174,10 @@ def visual_hull(masks: Sequence[NDArray[np.generic] | None], poses: Sequence[Pos
     if len(views) < MIN_HULL_VIEWS:
         return None
     # Packed to a bit a pixel: a thousand 1280x1024 masks are 160 MB.
-    mask_bits = np.stack([np.packbits(m, axis=1) for m in
-                          _pinhole_masks([m for m, _ in views], camera)])
+    # Carved through the pinhole alone: the masks as the camera without its
+    # lens distortion would see them.
+    mask_bits = np.stack([np.packbits(undistort(m.astype(np.uint8), camera, nearest=True)[0] > 0,
+                                      axis=1) for m, _ in views])
     rotations = np.stack([pose.R_m2c for _, pose in views]).astype(np.float64)
     translations = np.stack([pose.t_m2c for _, pose in views]).astype(np.float64)
     tolerance = int(MISS_TOLERANCE_SHARE * len(views))

@@ -89,7 +89,7 @@ def learn_images(
     camera = camera_from_meta(meta["camera"])
     if camera.has_distortion:
         # The engine takes pinhole images: remove the lens distortion (same K).
-        from app.imaging import undistort
+        from viewloc_core.camera import undistort
 
         progress("removing lens distortion", 0.0)
         distorted = camera
