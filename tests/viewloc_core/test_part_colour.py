@@ -79,6 +79,33 @@ def test_no_histogram_from_grey_images_or_too_few_pixels() -> None:
         acc.add(np.zeros((32, 32, 3), np.uint8), np.ones((16, 16)))
 
 
+def test_views_that_disagree_about_the_parts_colour_give_no_histogram() -> None:
+    """A part photographed in a new colour each time has no colour of its own;
+    a two-tone part seen from all sides (both tones in most views) keeps one."""
+    gen = np.random.default_rng(3)
+    view = np.zeros((48, 48, 3), np.uint8)
+    mask = np.zeros((48, 48), np.uint8)
+    mask[4:44, 4:44] = 1
+    one_colour, many_colours, two_tone = (pc.ColourAccumulator(seed=0) for _ in range(3))
+    for _ in range(30):
+        shade = gen.uniform(0.5, 1.0)  # lights move brightness, not chromaticity
+        view[:] = (np.array(ORANGE) * shade).astype(np.uint8)
+        one_colour.add(view, mask)
+        view[:] = gen.integers(50, 255, 3).astype(np.uint8)
+        many_colours.add(view, mask)
+        # Orange and blue, the share of each changing with the side seen.
+        split = int(gen.integers(16, 33))
+        view[:, :split] = (np.array(ORANGE) * shade).astype(np.uint8)
+        view[:, split:] = (np.array(BLUE) * shade).astype(np.uint8)
+        two_tone.add(view, mask)
+    assert one_colour.view_agreement() > 0.95 and one_colour.histogram() is not None
+    assert two_tone.view_agreement() > pc.MIN_VIEW_AGREEMENT
+    assert two_tone.histogram() is not None
+    assert many_colours.view_agreement() < pc.MIN_VIEW_AGREEMENT
+    assert many_colours.histogram() is None
+    assert pc.ColourAccumulator().view_agreement() == 0.0
+
+
 def test_a_colour_image_without_colours_is_told_from_one_with_them() -> None:
     grey = np.random.default_rng(0).integers(0, 256, (48, 64), dtype=np.uint8)
     as_rgb = np.repeat(grey[:, :, None], 3, axis=2)
