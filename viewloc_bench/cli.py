@@ -10,15 +10,25 @@ from pathlib import Path
 from typing import Any
 
 from viewloc_bench import dense, lmo, runner, sets
-from viewloc_bench.localizers import Backend, CoreBackend, EngineUnavailableError, HttpBackend
+from viewloc_bench.localizers import (
+    Backend,
+    CoreBackend,
+    EngineUnavailableError,
+    HttpBackend,
+    PhotoLearningBackend,
+)
+from viewloc_bench.photos import DEFAULT_PHOTOS, PhotoBackend
 
-ALL_SETS = ("paper", "hard", "novel", "multi", "hard-mono", "hard-hd", "lmo", "lmo-grey")
+ALL_SETS = ("paper", "hard", "novel", "multi", "hard-mono", "hard-hd", "hard-photos", "lmo",
+            "lmo-grey")
 
 #: Sets made from a generated one: its images as a monochrome camera sees
-#: them (``-mono``, :func:`viewloc_bench.sets.monochrome`), or its scenes
+#: them (``-mono``, :func:`viewloc_bench.sets.monochrome`), its scenes
 #: rendered at twice the resolution, 1280x960 for hard (``-hd``: a
-#: megapixel camera, the part twice as many pixels across).
-DERIVED_SUFFIXES = ("-mono", "-hd")
+#: megapixel camera, the part twice as many pixels across), or its scenes
+#: with each part learned from masked photos instead of its mesh
+#: (``-photos``, :mod:`viewloc_bench.photos`).
+DERIVED_SUFFIXES = ("-mono", "-hd", "-photos")
 HD_SCALE = 2.0
 QUICK_IMAGES_PER_N = 2
 QUICK_NEGATIVES = 2
@@ -65,6 +75,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--api-key", default=None, help="bearer token for --url")
     p.add_argument(
         "--images-per-n", type=int, default=None, help="override images per N (and negatives)"
+    )
+    p.add_argument(
+        "--photos",
+        type=int,
+        default=DEFAULT_PHOTOS,
+        help="masked training photos per part in the -photos sets (default %(default)s)",
     )
     p.add_argument(
         "--scale", type=float, default=1.0, help="shrink generated images (smoke tests only)"
@@ -127,7 +143,7 @@ def load_sets(args: argparse.Namespace, names: list[str]) -> dict[str, sets.Benc
     return out
 
 
-def make_backend(args: argparse.Namespace) -> Backend:
+def make_backend(args: argparse.Namespace) -> PhotoLearningBackend:
     """The method measured: the HTTP service at ``--url``, else the core in-process;
     learning with ``--learn-seed`` (``--seed`` when not given)."""
     refine = not args.no_refine
@@ -153,6 +169,9 @@ def main(argv: list[str] | None = None) -> int:
     unknown = [n for n in names if n not in ALL_SETS]
     if unknown:
         print(f"unknown set(s) {unknown}; choose from {ALL_SETS}", file=sys.stderr)
+        return 2
+    if args.photos < 1:
+        print(f"--photos must be at least 1, got {args.photos}", file=sys.stderr)
         return 2
     args.out.mkdir(parents=True, exist_ok=True)
     benches = load_sets(args, names)
@@ -182,7 +201,11 @@ def main(argv: list[str] | None = None) -> int:
         print(str(exc))
         available = False
     header_base = f"{backend.label}, refine {'on' if refine else 'off'}"
+    learn_seed = args.seed if args.learn_seed is None else args.learn_seed
     for name, bench in benches.items():
+        set_backend: Backend = backend
+        if name.endswith("-photos"):
+            set_backend = PhotoBackend(backend, args.photos, learn_seed)
         entry: dict[str, Any] = {
             "folder": str(bench.folder),
             "generation_s": bench.generation_s,
@@ -197,11 +220,12 @@ def main(argv: list[str] | None = None) -> int:
             results["sets"][name] = entry
             continue
         t0 = time.perf_counter()
-        res = runner.evaluate_set(bench, backend)
+        res = runner.evaluate_set(bench, set_backend)
         entry.update(res)
         entry["wall_s"] = round(time.perf_counter() - t0, 1)
         results["sets"][name] = entry
-        print(runner.format_table(name, bench, res, header_base))
+        header = f"{set_backend.label}, refine {'on' if refine else 'off'}"
+        print(runner.format_table(name, bench, res, header))
         if name == "paper":
             runner.plot_fig2(res, args.out / "paper_fig2.png")
             print(f"plot: {args.out / 'paper_fig2.png'}")

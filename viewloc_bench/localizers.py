@@ -16,8 +16,9 @@ import hashlib
 import io
 import json
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -27,6 +28,12 @@ from viewloc_bench.sets import BenchObject
 from viewloc_core.camera import Camera
 from viewloc_core.detection import Detection, Similarity2D
 from viewloc_core.pose import Pose
+
+if TYPE_CHECKING:
+    import httpx
+
+    from viewloc_bench.photos import TrainingPhotos
+    from viewloc_core.model import ObjectModel
 
 
 class Localizer(Protocol):
@@ -89,6 +96,14 @@ class Backend(Protocol):
         ...
 
 
+class PhotoLearningBackend(Backend, Protocol):
+    """A backend that can also learn an object from masked training photos."""
+
+    def learn_photos(self, obj: BenchObject, photos: TrainingPhotos) -> LearnedObject:
+        """Learn ``obj`` from ``photos`` (not its mesh) and return its localizer."""
+        ...
+
+
 class CoreBackend:
     """``viewloc_core.learn.learn_from_mesh`` and ``viewloc_core.localize.localize`` in-process."""
 
@@ -110,13 +125,25 @@ class CoreBackend:
 
         self.check()
         from viewloc_core.learn import LearningConfig, learn_from_mesh
-        from viewloc_core.localize import LocalizeOptions, localize
 
         mesh = trimesh.load(obj.mesh_path, force="mesh")
         assert isinstance(mesh, trimesh.Trimesh)
         t0 = time.perf_counter()
         model = learn_from_mesh(mesh, LearningConfig(), None, rng=self.seed)
-        learn_s = time.perf_counter() - t0
+        return self._learned(obj, model, time.perf_counter() - t0)
+
+    def learn_photos(self, obj: BenchObject, photos: TrainingPhotos) -> LearnedObject:
+        """Learn ``obj`` from masked photos (``learn_from_images``) and return its localizer."""
+        self.check()
+        from viewloc_core.learn import LearningConfig, learn_from_images
+
+        t0 = time.perf_counter()
+        model = learn_from_images(photos.images, photos.masks, photos.camera, photos.views,
+                                  photos.diameter_mm, LearningConfig(), None, rng=self.seed)
+        return self._learned(obj, model, time.perf_counter() - t0)
+
+    def _learned(self, obj: BenchObject, model: ObjectModel, learn_s: float) -> LearnedObject:
+        from viewloc_core.localize import LocalizeOptions, localize
 
         def run(
             image: NDArray[np.uint8], camera: Camera, max_detections: int = self.max_detections
@@ -130,6 +157,7 @@ class CoreBackend:
             learn_s,
             _int_or_none(getattr(model, "training_views", None)),
             _int_or_none(getattr(model, "model_views", None)),
+            {"refinable": getattr(model, "contour", None) is not None},
         )
 
 
@@ -292,9 +320,51 @@ class HttpBackend:
     def learn(self, obj: BenchObject) -> LearnedObject:
         mesh_bytes = obj.mesh_path.read_bytes()
         name = self.object_name(obj, mesh_bytes)
+
+        def upload() -> httpx.Response:
+            return self.client.post(
+                "/v1/objects",
+                files={"mesh": (obj.mesh_path.name, mesh_bytes, "application/octet-stream")},
+                data={"spec": json.dumps({"name": name, "units": "mm",
+                                          "learning": self.learning})},
+            )
+
+        return self._learn(obj, name, "mesh", upload)
+
+    def learn_photos(self, obj: BenchObject, photos: TrainingPhotos) -> LearnedObject:
+        """Learn ``obj`` from masked photos through ``POST /v1/objects/from-images``.
+
+        Reused as :meth:`learn` is, under a name that carries the photos' digest.
+        """
+        name = bench_object_name(obj.name, photos.digest().encode(), self.learning) + ":photos"
+
+        def upload() -> httpx.Response:
+            cam = photos.camera
+            spec = {
+                "name": name,
+                "camera": {"fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy},
+                "object_diameter_mm": photos.diameter_mm,
+                "views": [{"azimuth_deg": v.azimuth_deg, "polar_deg": v.polar_deg,
+                           "distance_mm": v.distance_mm, "inplane_deg": v.inplane_deg}
+                          for v in photos.views],
+                "learning": self.learning,
+            }
+            files = [("images", (f"photo{i:04d}.png", encode_png(image), "image/png"))
+                     for i, image in enumerate(photos.images)]
+            files += [("masks", (f"mask{i:04d}.png", encode_png(mask), "image/png"))
+                      for i, mask in enumerate(photos.masks)]
+            return self.client.post("/v1/objects/from-images", files=files,
+                                    data={"spec": json.dumps(spec)})
+
+        return self._learn(obj, name, "images", upload)
+
+    def _learn(self, obj: BenchObject, name: str, source: str,
+               upload: Callable[[], httpx.Response]) -> LearnedObject:
+        """Reuse the object called ``name`` learned from ``source``, else ``upload`` it;
+        wait for its job and return its localizer."""
         t0 = time.perf_counter()
         found = [o for o in self._get("/v1/objects")["objects"]
-                 if o["name"] == name and o["source"] == "mesh"
+                 if o["name"] == name and o["source"] == source
                  and o["state"] in ("ready", "learning")] if self.reuse else []
         if found:
             # Newest first: a ready one, else the one still learning.
@@ -302,14 +372,9 @@ class HttpBackend:
             object_id, job_id = found[0]["object_id"], found[0]["job_id"]
             reused = True
         else:
-            r = self.client.post(
-                "/v1/objects",
-                files={"mesh": (obj.mesh_path.name, mesh_bytes, "application/octet-stream")},
-                data={"spec": json.dumps({"name": name, "units": "mm",
-                                          "learning": self.learning})},
-            )
+            r = upload()
             if r.status_code != 202:
-                raise RuntimeError(f"POST /v1/objects answered {r.status_code}: {r.text[:500]}")
+                raise RuntimeError(f"learning {obj.name} answered {r.status_code}: {r.text[:500]}")
             body = r.json()
             object_id, job_id = body["object"]["object_id"], body["job"]["job_id"]
             reused = False

@@ -108,7 +108,9 @@ class Scene:
         return ([self.target] if self.target is not None else []) + self.copies
 
 
-def _colour(rng: np.random.Generator, v_min: float = 0.35) -> tuple[float, float, float]:
+def random_colour(rng: np.random.Generator, v_min: float = 0.35) -> tuple[float, float, float]:
+    """A random display colour (r, g, b), each 0..1: any hue, saturation up to 0.8,
+    value from ``v_min`` to 0.95 (the scenes' palette)."""
     h, s, v = rng.uniform(0, 1), rng.uniform(0.0, 0.8), rng.uniform(v_min, 0.95)
     r, g, b = colorsys.hsv_to_rgb(h, s, v)
     return (r, g, b)
@@ -116,7 +118,7 @@ def _colour(rng: np.random.Generator, v_min: float = 0.35) -> tuple[float, float
 
 def _material(rng: np.random.Generator, metal_prob: float) -> tuple[str, str]:
     """(kind, SDL texture) from matte to specular."""
-    c = pv.vec(_colour(rng))
+    c = pv.vec(random_colour(rng))
     if rng.uniform() < metal_prob:
         rough = rng.uniform(0.003, 0.03)
         refl = rng.uniform(0.1, 0.35)
@@ -316,7 +318,7 @@ TEXTURES = ("wood", "granite", "checker", "noise", "agate")
 def _background(rng: np.random.Generator, params: SceneParams) -> tuple[str, str]:
     """(kind, SDL) of a plain background or a tilted plane behind everything."""
     if rng.uniform() >= params.floor_prob:
-        return "plain", f"background {{ rgb {pv.vec(_colour(rng, 0.1))} }}\n"
+        return "plain", f"background {{ rgb {pv.vec(random_colour(rng, 0.1))} }}\n"
     z_bg = rng.uniform(1800, 2300)
     tilt = Rotation.from_rotvec(rng.normal(size=3) / 3 * np.radians(30)).as_matrix()
     n_cam = tilt @ np.array([0.0, 0.0, -1.0])
@@ -324,7 +326,7 @@ def _background(rng: np.random.Generator, params: SceneParams) -> tuple[str, str
         n_cam = np.array([0.0, 0.0, -1.0])
     dist = float(-n_cam @ np.array([0.0, 0.0, z_bg]))
     kind = "floor"
-    c1, c2 = pv.vec(_colour(rng, 0.15)), pv.vec(_colour(rng, 0.15))
+    c1, c2 = pv.vec(random_colour(rng, 0.15)), pv.vec(random_colour(rng, 0.15))
     pigment = f"pigment {{ rgb {c1} }}"
     if rng.uniform() < params.textured_prob:
         kind = str(rng.choice(TEXTURES))

@@ -204,7 +204,7 @@ def test_novel_spec_is_the_hard_scenes_with_new_objects() -> None:
     assert novel.camera == hard.camera and novel.scene == hard.scene
     assert len(set(sets.SET_CODES.values())) == len(sets.SET_CODES)
     assert set(sets.SPECS) <= set(cli.ALL_SETS) <= set(sets.SPECS) | {
-        "hard-mono", "hard-hd", "lmo", "lmo-grey"}
+        "hard-mono", "hard-hd", "hard-photos", "lmo", "lmo-grey"}
     assert cli.ALL_SETS.index("novel") == cli.ALL_SETS.index("hard") + 1
 
 
@@ -241,7 +241,7 @@ def test_multi_spec_is_the_hard_scenes_with_three_instances() -> None:
     assert (multi.images_per_n, multi.negatives) == (8, 0)
     assert multi.camera == hard.camera and multi.scene == hard.scene
     assert cli.ALL_SETS.index("multi") == cli.ALL_SETS.index("novel") + 1
-    assert cli.ALL_SETS[-4:] == ("hard-mono", "hard-hd", "lmo", "lmo-grey")
+    assert cli.ALL_SETS[-5:] == ("hard-mono", "hard-hd", "hard-photos", "lmo", "lmo-grey")
     # Smaller runs (--quick, --images-per-n) keep the others' negatives and add none here.
     assert cli.set_spec("multi", 2, 1.0) == sets.multi_spec(2, 0)
     assert cli.set_spec("paper", 2, 1.0) == sets.paper_spec(2, 2)
