@@ -76,6 +76,19 @@ HULL_MAX_FACES = 20_000
 #: that would read as creases.
 SMOOTHING_VOXELS = 0.8
 
+#: Taubin smoothing of the surface (Taubin 1995: per iteration a shrinking
+#: step of ``TAUBIN_LAMBDA`` and an inflating one of ``TAUBIN_MU``, so the
+#: volume stays). Marching cubes leaves facets several degrees off the true
+#: surface however smooth the field, and the shading cue reads the hull's
+#: normals to tell a part's sides apart. The hard set's free-form part from
+#: 162 photos: normals a median 6.2° off the mesh's without it, 2.8° after 5
+#: iterations, 2.1° after 10, 1.7° after 20 (the surface 0.26, 0.27, 0.28,
+#: 0.31 mm from the mesh); its AR_MSSD / AR_MSPD 0.605 / 0.673 -> 0.76 /
+#: 0.805 with 10.
+TAUBIN_LAMBDA = 0.5
+TAUBIN_MU = -0.53
+TAUBIN_ITERATIONS = 10
+
 
 @njit(cache=True, nogil=True)
 def _kept(points_mm: NDArray[np.float64], rotations: NDArray[np.float64],
@@ -214,4 +227,6 @@ def visual_hull(masks: Sequence[NDArray[np.generic] | None], poses: Sequence[Pos
         hull = max(pieces, key=lambda piece: len(piece.faces))
     if hull.volume < 0:
         hull.invert()
+    trimesh.smoothing.filter_taubin(hull, lamb=TAUBIN_LAMBDA, nu=TAUBIN_MU,
+                                    iterations=TAUBIN_ITERATIONS)
     return simplified(hull, HULL_MAX_FACES)

@@ -71,6 +71,26 @@ def test_the_hull_of_a_box_holds_it_and_shows_its_outline(sides, angles, shift):
         assert _outside_share(shown, mask) < 0.01 and _outside_share(mask, shown) < 0.01
 
 
+def test_the_hull_of_a_smooth_part_has_its_normals():
+    """The shading cue reads the hull's normals: on an ellipsoid they are the
+    surface's to a few degrees, not marching cubes' facets (6° and more)."""
+    part = trimesh.creation.icosphere(subdivisions=5, radius=1.0)
+    part.apply_scale((60.0, 40.0, 30.0))
+    masks, poses = _photos(part)
+    hull = vh.visual_hull(masks, poses, CAMERA, 120.0)
+    assert hull is not None
+    points, faces = trimesh.sample.sample_surface_even(hull, 5000, seed=0)
+    # The ellipsoid's normal at the nearest point along the ray from its centre.
+    radii = np.array([60.0, 40.0, 30.0])
+    on_part = points / np.linalg.norm(points / radii, axis=1, keepdims=True)
+    normals = on_part / radii**2
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    error_deg = np.degrees(np.arccos(np.clip(
+        np.sum(hull.face_normals[faces] * normals, axis=1), -1.0, 1.0)))
+    assert np.median(error_deg) < 3.0 and np.percentile(error_deg, 90) < 6.0
+    assert np.median(np.linalg.norm(points - on_part, axis=1)) < 0.5
+
+
 def test_a_concave_part_keeps_the_notch_the_photos_see_through():
     # An L: two slabs; the notch between their arms is seen from the side.
     arm_a = trimesh.creation.box(extents=(80.0, 20.0, 30.0))
