@@ -42,7 +42,12 @@ from viewloc_bench.scenes import random_colour
 from viewloc_bench.sets import BenchObject
 from viewloc_core.camera import Camera
 from viewloc_core.pose import Pose, rot_z
-from viewloc_core.view_sphere import angles_from_direction, direction_from_angles, view_rotation
+from viewloc_core.view_sphere import (
+    angles_from_direction,
+    direction_from_angles,
+    spiral_directions,
+    view_rotation,
+)
 
 if TYPE_CHECKING:
     # The engine is imported where photos are made: the bench must load without it.
@@ -102,29 +107,6 @@ class TrainingPhotos:
         return h.hexdigest()
 
 
-def photo_directions(count: int) -> NDArray[np.float64]:
-    """Unit directions from the object to the camera, evenly over the sphere.
-
-    Parameters
-    ----------
-    count : int
-        Number of directions, at least 1.
-
-    Returns
-    -------
-    (count, 3) float64
-        Points of the golden-angle spiral: equal areas per point, neighbours
-        about ``sqrt(4 pi / count)`` radians apart.
-    """
-    if count < 1:
-        raise ValueError(f"count must be at least 1, got {count}")
-    i = np.arange(count, dtype=np.float64)
-    z = 1.0 - (2.0 * i + 1.0) / count
-    azimuth_rad = i * math.pi * (3.0 - math.sqrt(5.0))
-    r = np.sqrt(np.clip(1.0 - z * z, 0.0, 1.0))
-    return np.stack([r * np.cos(azimuth_rad), r * np.sin(azimuth_rad), z], axis=1)
-
-
 def photo_pose(view: TrainingView) -> Pose:
     """The pose (object to photo camera) a training view states, as learning reads it."""
     direction = direction_from_angles(view.azimuth_deg, view.polar_deg)
@@ -162,7 +144,7 @@ def render_photos(obj: BenchObject, count: int = DEFAULT_PHOTOS, seed: int = 0,
     masks: list[NDArray[np.uint8]] = []
     views: list[TrainingView] = []
     with Renderer() as renderer:
-        for direction in photo_directions(count):
+        for direction in spiral_directions(count):
             azimuth_deg, polar_deg = angles_from_direction(direction)
             span_px = rng.uniform(*PART_SPAN_PX)
             view = TrainingView(azimuth_deg, polar_deg,

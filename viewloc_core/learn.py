@@ -178,8 +178,9 @@ class LearningConfig:
         (:mod:`viewloc_core.visual_hull`) and learns its outline as the
         contour model, so the part's fits are refined as a mesh's are.
         Without masks (or with fewer than
-        :data:`viewloc_core.visual_hull.MIN_HULL_VIEWS`) there is no hull,
-        and a pose is its nearest training view's.
+        :data:`viewloc_core.visual_hull.MIN_HULL_VIEWS`, or photos that
+        leave a side unseen, :data:`viewloc_core.visual_hull.MAX_UNSEEN_ANGLE_DEG`)
+        there is no hull, and a pose is its nearest training view's.
     """
 
     max_level: int = 2

@@ -173,6 +173,29 @@ def subdivided_sphere(levels: int) -> tuple[Array, NDArray[np.int64], NDArray[np
     return np.array(vert_list), faces, np.array(level_of, dtype=np.int64)
 
 
+def spiral_directions(count: int) -> Array:
+    """Unit directions spread evenly over the sphere, for any count.
+
+    Parameters
+    ----------
+    count : int
+        Number of directions, at least 1.
+
+    Returns
+    -------
+    (count, 3) float64
+        Points of the golden-angle spiral: equal areas per point, every
+        direction within about ``0.75 * sqrt(4 pi / count)`` radians of one.
+    """
+    if count < 1:
+        raise ValueError(f"count must be at least 1, got {count}")
+    i = np.arange(count, dtype=np.float64)
+    z = 1.0 - (2.0 * i + 1.0) / count
+    azimuth_rad = i * np.pi * (3.0 - np.sqrt(5.0))
+    r = np.sqrt(np.clip(1.0 - z * z, 0.0, 1.0))
+    return np.stack([r * np.cos(azimuth_rad), r * np.sin(azimuth_rad), z], axis=1)
+
+
 def view_directions(
     levels: int, max_polar_deg: float = 180.0
 ) -> list[ViewDirection]:

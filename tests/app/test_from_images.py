@@ -115,7 +115,7 @@ def test_learn_from_images_and_localize_through_http(
         np.testing.assert_allclose(model.training.polar_deg,
                                    [d.polar_deg for d in directions], atol=1e-6)
 
-        # Without a mesh the overlay draws axes only; it is still the scene's PNG.
+        # The overlay (of the photos' visual hull) is the scene's PNG.
         shown = client.localize(obj.object_id, _encode(scenes[0], ".png"), scene_cam,
                                 overlay=True).overlay_png
         assert shown is not None
@@ -128,12 +128,15 @@ def test_learn_from_images_and_localize_through_http(
             xy = np.array([det["similarity"]["x"], det["similarity"]["y"]])
             err_px = vm.reference_point_error_px(xy, scene_cam, truth)
             assert err_px < 0.1 * vm.image_diameter_px(scene_cam, truth, diameter)
-            # Training views are ~25 deg apart at level 1 and there is no mesh to
-            # refine against: the pose is the nearest view's, turned in the plane.
-            assert rotation_angle_deg(np.array(det["pose"]["R"]), truth.R_m2c) < 25.0
+            # 42 masked photos from all round carve the part's visual hull, and
+            # the pose is refined on its outline (not the nearest training
+            # view's, 25° apart); the hull bulges over flat faces, so the part
+            # reads a little larger, nearer (measured 1.3-2.9 %).
+            assert det["refined"] is True
+            assert rotation_angle_deg(np.array(det["pose"]["R"]), truth.R_m2c) < 3.0
             t_mm = np.array(det["pose"]["t_mm"])
-            assert abs(t_mm[2] - truth.t_m2c[2]) < 0.15 * truth.t_m2c[2]
-            assert det["refined"] is False
+            assert np.linalg.norm(t_mm[:2] - truth.t_m2c[:2]) < 3.0
+            assert abs(t_mm[2] - truth.t_m2c[2]) < 0.04 * truth.t_m2c[2]
 
 
 

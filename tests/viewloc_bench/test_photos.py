@@ -1,5 +1,5 @@
-"""Rendered training photos for the ``-photos`` sets: viewpoints over the whole sphere,
-photos whose masks and stated views agree, and both backends learning from them."""
+"""Rendered training photos for the ``-photos`` sets: photos whose masks and stated
+views agree, and both backends learning from them."""
 
 from __future__ import annotations
 
@@ -10,8 +10,6 @@ import httpx
 import numpy as np
 import pytest
 import trimesh
-from hypothesis import given, settings
-from hypothesis import strategies as st
 
 from tests.app.conftest import LiveServer, make_server
 from viewloc_bench import cli
@@ -20,7 +18,6 @@ from viewloc_bench.photos import (
     PART_SPAN_PX,
     PhotoBackend,
     TrainingPhotos,
-    photo_directions,
     photo_pose,
     render_photos,
 )
@@ -36,26 +33,6 @@ def _bracket() -> BenchObject:
     mesh = trimesh.load(BRACKET, force="mesh")
     return BenchObject("bracket", BRACKET, mesh_diameter_mm(mesh), np.eye(4)[None],
                        np.asarray(mesh.vertices))
-
-
-@settings(max_examples=40, deadline=None)
-@given(st.integers(2, 1500))
-def test_photo_directions_cover_the_sphere_evenly(count: int) -> None:
-    d = photo_directions(count)
-    assert d.shape == (count, 3)
-    np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1.0, atol=1e-12)
-    # No side is favoured, and every direction has a photo within about the
-    # spacing of equal areas (the golden spiral's covering radius is ~0.75 of it).
-    assert np.linalg.norm(d.mean(axis=0)) < 0.35
-    probe = np.random.default_rng(count).normal(size=(2000, 3))
-    probe /= np.linalg.norm(probe, axis=1, keepdims=True)
-    nearest_rad = np.arccos(np.clip((probe @ d.T).max(axis=1), -1.0, 1.0))
-    assert nearest_rad.max() < 0.9 * np.sqrt(4.0 * np.pi / count)
-
-
-def test_photo_directions_refuse_no_photos() -> None:
-    with pytest.raises(ValueError, match="at least 1"):
-        photo_directions(0)
 
 
 def test_photos_show_the_part_where_their_views_say() -> None:

@@ -2,13 +2,14 @@
 
 import numpy as np
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from viewloc_core.view_sphere import (
     angles_from_direction,
     direction_from_angles,
     nearest_neighbour_angles_deg,
+    spiral_directions,
     subdivided_sphere,
     view_directions,
     view_rotation,
@@ -72,3 +73,23 @@ def test_angles_round_trip(az, po):
     a, p = angles_from_direction(direction_from_angles(az, po))
     assert p == pytest.approx(po, abs=1e-9)
     assert (a - az + 180) % 360 - 180 == pytest.approx(0.0, abs=1e-7)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(2, 1500))
+def test_spiral_directions_cover_the_sphere_evenly(count: int) -> None:
+    d = spiral_directions(count)
+    assert d.shape == (count, 3)
+    np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1.0, atol=1e-12)
+    # No side is favoured, and every direction has one within about the
+    # spacing of equal areas (the golden spiral's covering radius is ~0.75 of it).
+    assert np.linalg.norm(d.mean(axis=0)) < 0.35
+    probe = np.random.default_rng(count).normal(size=(2000, 3))
+    probe /= np.linalg.norm(probe, axis=1, keepdims=True)
+    nearest_rad = np.arccos(np.clip((probe @ d.T).max(axis=1), -1.0, 1.0))
+    assert nearest_rad.max() < 0.9 * np.sqrt(4.0 * np.pi / count)
+
+
+def test_spiral_directions_refuse_no_photos() -> None:
+    with pytest.raises(ValueError, match="at least 1"):
+        spiral_directions(0)

@@ -132,6 +132,22 @@ def test_too_few_masks_or_no_common_volume_give_no_hull():
     assert vh.visual_hull(empty, poses, CAMERA, 80.0) is None
 
 
+def test_photos_that_leave_a_side_unseen_give_no_hull():
+    """From above only (a part on a table) the cones meet in a column through
+    the table, not the part: no hull, however many photos."""
+    box = trimesh.creation.box(extents=(60.0, 40.0, 30.0))
+    masks, poses = _photos(box)
+    above = [i for i, v in enumerate(view_directions(2)) if v.polar_deg < 80.0]
+    assert len(above) >= vh.MIN_HULL_VIEWS
+    assert vh.unseen_angle_deg([poses[i] for i in above]) > 90.0
+    assert vh.visual_hull([masks[i] for i in above], [poses[i] for i in above], CAMERA,
+                          80.0) is None
+    # The icosahedron's 12 directions leave caps of 37.4° unseen, its 42 of 20.9°.
+    assert vh.unseen_angle_deg(poses[:12]) == pytest.approx(37.4, abs=0.5)
+    assert vh.unseen_angle_deg(poses[:42]) == pytest.approx(20.9, abs=0.5)
+    assert vh.unseen_angle_deg([]) == 180.0
+
+
 def test_one_photo_whose_mask_misses_part_of_the_part_is_outvoted():
     box = trimesh.creation.box(extents=(60.0, 40.0, 30.0))
     masks, poses = _photos(box)
