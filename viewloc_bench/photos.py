@@ -153,10 +153,10 @@ def render_photos(obj: BenchObject, count: int = DEFAULT_PHOTOS, seed: int = 0,
             metal = rng.uniform() < METAL_SHARE
             material = Material(random_colour(rng), metallic=float(rng.uniform(0.6, 1.0)) if metal
                                 else 0.0, roughness=float(rng.uniform(0.2, 0.8)))
-            backdrop = tuple(int(c) for c in rng.integers(30, 220, 3))
+            red, green, blue = (int(c) for c in rng.integers(30, 220, 3))
             rendered = renderer.render(prepared, camera, photo_pose(view),
                                        lights=random_lights(rng), material=material,
-                                       background_rgb=(backdrop[0], backdrop[1], backdrop[2]))
+                                       background_rgb=(red, green, blue))
             noisy = rendered.color + rng.normal(0.0, NOISE_STD, rendered.color.shape)
             images.append(np.clip(np.rint(noisy), 0, 255).astype(np.uint8))
             masks.append(np.where(rendered.mask, 255, 0).astype(np.uint8))
