@@ -28,7 +28,6 @@ any colour, as it is in these scenes.
 from __future__ import annotations
 
 import hashlib
-import math
 import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -41,13 +40,7 @@ from viewloc_bench.localizers import LearnedObject, PhotoLearningBackend
 from viewloc_bench.scenes import random_colour
 from viewloc_bench.sets import BenchObject
 from viewloc_core.camera import Camera
-from viewloc_core.pose import Pose, rot_z
-from viewloc_core.view_sphere import (
-    angles_from_direction,
-    direction_from_angles,
-    spiral_directions,
-    view_rotation,
-)
+from viewloc_core.view_sphere import angles_from_direction, spiral_directions
 
 if TYPE_CHECKING:
     # The engine is imported where photos are made: the bench must load without it.
@@ -107,13 +100,6 @@ class TrainingPhotos:
         return h.hexdigest()
 
 
-def photo_pose(view: TrainingView) -> Pose:
-    """The pose (object to photo camera) a training view states, as learning reads it."""
-    direction = direction_from_angles(view.azimuth_deg, view.polar_deg)
-    rotation = rot_z(math.radians(view.inplane_deg)) @ view_rotation(direction)
-    return Pose(rotation, np.array([0.0, 0.0, view.distance_mm]))
-
-
 def render_photos(obj: BenchObject, count: int = DEFAULT_PHOTOS, seed: int = 0,
                   camera: Camera = PHOTO_CAMERA) -> TrainingPhotos:
     """Render ``count`` masked training photos of ``obj`` (see the module's docstring).
@@ -154,7 +140,7 @@ def render_photos(obj: BenchObject, count: int = DEFAULT_PHOTOS, seed: int = 0,
             material = Material(random_colour(rng), metallic=float(rng.uniform(0.6, 1.0)) if metal
                                 else 0.0, roughness=float(rng.uniform(0.2, 0.8)))
             red, green, blue = (int(c) for c in rng.integers(30, 220, 3))
-            rendered = renderer.render(prepared, camera, photo_pose(view),
+            rendered = renderer.render(prepared, camera, view.pose(),
                                        lights=random_lights(rng), material=material,
                                        background_rgb=(red, green, blue))
             noisy = rendered.color + rng.normal(0.0, NOISE_STD, rendered.color.shape)

@@ -274,6 +274,12 @@ class TrainingView:
     distance_mm: float
     inplane_deg: float = 0.0
 
+    def pose(self) -> Pose:
+        """The pose this view states: object to the photo's camera, mm."""
+        rotation = view_rotation(direction_from_angles(self.azimuth_deg, self.polar_deg))
+        return Pose(rot_z(math.radians(self.inplane_deg)) @ rotation,
+                    np.array([0.0, 0.0, self.distance_mm]))
+
 
 @dataclass(slots=True)
 class _Cluster:
@@ -891,8 +897,7 @@ def learn_from_images(
         rotations.append(view_rotation(direction))
         samples.append(sample)
         angles.append((view.azimuth_deg, view.polar_deg))
-        photo_poses.append(Pose(rot_z(math.radians(view.inplane_deg)) @ rotations[-1],
-                                np.array([0.0, 0.0, view.distance_mm])))
+        photo_poses.append(view.pose())
     hull = None
     if config.visual_hull and masks is not None:
         from viewloc_core.visual_hull import visual_hull

@@ -18,7 +18,6 @@ from viewloc_bench.photos import (
     PART_SPAN_PX,
     PhotoBackend,
     TrainingPhotos,
-    photo_pose,
     render_photos,
 )
 from viewloc_bench.sets import BenchObject
@@ -44,7 +43,7 @@ def test_photos_show_the_part_where_their_views_say() -> None:
         assert image.shape == (cam.height, cam.width, 3) and image.dtype == np.uint8
         assert set(np.unique(mask)) == {0, 255}
         # The stated view, read as learning reads it, puts the mesh on the mask.
-        pose = photo_pose(view)
+        pose = view.pose()
         uv = cam.project(obj.pts_obj @ pose.R_m2c.T + pose.t_m2c)
         ij = np.rint(uv).astype(int)
         inside = (ij[:, 0] >= 0) & (ij[:, 0] < cam.width) & (ij[:, 1] >= 0) & (
@@ -127,7 +126,7 @@ def test_both_backends_learn_a_part_from_its_photos(
     for learned in (core, first):
         dets = learned.localize(scene.images[4], scene.camera)
         assert dets, learned
-        truth = photo_pose(scene.views[4])
+        truth = scene.views[4].pose()
         uv = scene.camera.project(truth.t_m2c[None])[0]
         assert np.hypot(dets[0].similarity.x - uv[0], dets[0].similarity.y - uv[1]) < 0.1 * max(
             PART_SPAN_PX)
