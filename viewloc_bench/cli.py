@@ -143,11 +143,16 @@ def load_sets(args: argparse.Namespace, names: list[str]) -> dict[str, sets.Benc
     return out
 
 
+def _learn_seed(args: argparse.Namespace) -> int:
+    """Seed of learning: ``--learn-seed``, else ``--seed``."""
+    return int(args.seed if args.learn_seed is None else args.learn_seed)
+
+
 def make_backend(args: argparse.Namespace) -> PhotoLearningBackend:
     """The method measured: the HTTP service at ``--url``, else the core in-process;
     learning with ``--learn-seed`` (``--seed`` when not given)."""
     refine = not args.no_refine
-    learn_seed = args.seed if args.learn_seed is None else args.learn_seed
+    learn_seed = _learn_seed(args)
     if args.url:
         return HttpBackend(args.url, refine=refine, api_key=args.api_key, seed=learn_seed)
     return CoreBackend(refine=refine, seed=learn_seed)
@@ -200,12 +205,11 @@ def main(argv: list[str] | None = None) -> int:
     except EngineUnavailableError as exc:
         print(str(exc))
         available = False
-    header_base = f"{backend.label}, refine {'on' if refine else 'off'}"
-    learn_seed = args.seed if args.learn_seed is None else args.learn_seed
     for name, bench in benches.items():
         set_backend: Backend = backend
         if name.endswith("-photos"):
-            set_backend = PhotoBackend(backend, args.photos, learn_seed)
+            set_backend = PhotoBackend(backend, args.photos, _learn_seed(args))
+        header = f"{set_backend.label}, refine {'on' if refine else 'off'}"
         entry: dict[str, Any] = {
             "folder": str(bench.folder),
             "generation_s": bench.generation_s,
@@ -215,7 +219,7 @@ def main(argv: list[str] | None = None) -> int:
         # Figures from two machines compare only on the same pixels (images_digest).
         print(f"set {name}: images sha256 {entry['images_sha256'][:16]}")
         if not available:
-            print(runner.format_table(name, bench, None, header_base))
+            print(runner.format_table(name, bench, None, header))
             entry["status"] = "engine not available"
             results["sets"][name] = entry
             continue
@@ -224,7 +228,6 @@ def main(argv: list[str] | None = None) -> int:
         entry.update(res)
         entry["wall_s"] = round(time.perf_counter() - t0, 1)
         results["sets"][name] = entry
-        header = f"{set_backend.label}, refine {'on' if refine else 'off'}"
         print(runner.format_table(name, bench, res, header))
         if name == "paper":
             runner.plot_fig2(res, args.out / "paper_fig2.png")

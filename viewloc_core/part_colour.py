@@ -190,11 +190,13 @@ class ColourAccumulator:
         if len(pixels) > PIXELS_PER_VIEW:
             pixels = pixels[self._rng.choice(len(pixels), PIXELS_PER_VIEW, replace=False)]
         self._pixels += len(pixels)
-        self._view_counts.append(np.bincount(colour_bins(pixels), minlength=N_BINS))
+        # The first draw is neutral: the view's own colours, kept for view_agreement.
+        neutral = np.bincount(colour_bins(pixels), minlength=N_BINS)
+        self._view_counts.append(neutral)
+        self._counts += neutral
         gains = 1.0 + self._rng.uniform(-WHITE_BALANCE_JITTER, WHITE_BALANCE_JITTER,
                                         (JITTER_DRAWS, 3))
-        gains[0] = 1.0
-        for gain in gains:
+        for gain in gains[1:]:
             jittered = np.clip(pixels * gain, 0.0, 255.0).astype(np.uint8)
             self._counts += np.bincount(colour_bins(jittered), minlength=N_BINS)
 

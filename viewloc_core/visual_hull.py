@@ -183,7 +183,8 @@ def unseen_angle_deg(poses: Sequence[Pose]) -> float:
     """
     if not poses:
         return 180.0
-    centres = np.stack([-pose.R_m2c.T @ pose.t_m2c for pose in poses])
+    # Each photo's camera centre in the object frame.
+    centres = np.stack([pose.inverse().t_m2c for pose in poses])
     seen = centres / np.linalg.norm(centres, axis=1, keepdims=True)
     probe = spiral_directions(UNSEEN_PROBES)
     nearest_cos = np.clip((probe @ seen.T).max(axis=1), -1.0, 1.0)
