@@ -83,7 +83,18 @@ MIN_VIEW_AGREEMENT = 0.85
 #: :data:`MIN_COLOURED_SHARE` of its pixels have channels further apart
 #: than this (0..255).
 GREY_CHANNEL_SPREAD = 12
-MIN_COLOURED_SHARE = 0.01
+
+#: A monochrome frame has no pixel of colour at all (its channels are equal,
+#: or a few levels apart after compression), so any coherent share of
+#: coloured pixels means a colour camera. The share must stay small: a small
+#: coloured part on a neutral background (a conveyor, a grey table) is all
+#: the colour such an image has. At 1 % the LM-O cat rendered at its true
+#: poses on a plain grey background (84 px across, 0.5-1 % of the image
+#: coloured) was taken as grey in 8 of 9 images: the features lost its
+#: colour contrast and the cue its colours, and its depth came out 3-5 %
+#: too far (1 of 9 within a tenth of its diameter); as colour 0.9-2 % (4 of
+#: 9), the ape 1-2 % (4 of 10 within a tenth, 0 of 10 as grey).
+MIN_COLOURED_SHARE = 0.001
 
 #: Floor of every bin's probability, so that a colour missing from the
 #: scene or from training cannot make the ratio explode.

@@ -122,6 +122,18 @@ def test_a_colour_image_without_colours_is_told_from_one_with_them() -> None:
     assert not pc.is_grey_in_colour(as_rgb.astype(np.float32) / 255.0)
 
 
+def test_a_small_coloured_part_on_a_neutral_background_is_colour() -> None:
+    # A 640x480 frame of a neutral conveyor with sensor noise (channels a few
+    # levels apart) and a small orange part, 0.3 % of the frame: a colour
+    # camera's image, whose only colour is the part's.
+    gen = np.random.default_rng(2)
+    belt = np.repeat(gen.integers(90, 140, (480, 640, 1)), 3, axis=2)
+    frame = np.clip(belt + gen.integers(-3, 4, belt.shape), 0, 255).astype(np.uint8)
+    assert pc.is_grey_in_colour(frame)
+    frame[200:230, 300:330] = ORANGE
+    assert not pc.is_grey_in_colour(frame)
+
+
 def test_back_projection_is_positive_on_the_part_and_negative_around_it() -> None:
     hist = _histogram_of(ORANGE)
     img = _scene_with_patch(ORANGE, (250, 120), 12)
