@@ -93,7 +93,8 @@ GREY_CHANNEL_SPREAD = 12
 #: coloured) was taken as grey in 8 of 9 images: the features lost its
 #: colour contrast and the cue its colours, and its depth came out 3-5 %
 #: too far (1 of 9 within a tenth of its diameter); as colour 0.9-2 % (4 of
-#: 9), the ape 1-2 % (4 of 10 within a tenth, 0 of 10 as grey).
+#: 9). The ape (0.35-1.1 % coloured, 9 of 10 taken as grey): 3 of 10 within
+#: a tenth as grey, 4 of 10 as colour (depth -0.3 to +1.8 %).
 MIN_COLOURED_SHARE = 0.001
 
 #: Floor of every bin's probability, so that a colour missing from the
