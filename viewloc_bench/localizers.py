@@ -143,22 +143,44 @@ class CoreBackend:
         return self._learned(obj, model, time.perf_counter() - t0)
 
     def _learned(self, obj: BenchObject, model: ObjectModel, learn_s: float) -> LearnedObject:
-        from viewloc_core.localize import LocalizeOptions, localize
-
-        def run(
-            image: NDArray[np.uint8], camera: Camera, max_detections: int = self.max_detections
-        ) -> list[Detection]:
-            options = LocalizeOptions(max_detections=max_detections, refine=self.refine)
-            return list(localize(model, image, camera, options).detections)
-
         return LearnedObject(
             obj.name,
-            run,
+            CoreLocalizer(model, self.refine, self.max_detections),
             learn_s,
             _int_or_none(getattr(model, "training_views", None)),
             _int_or_none(getattr(model, "model_views", None)),
             {"refinable": getattr(model, "contour", None) is not None},
         )
+
+
+class CoreLocalizer:
+    """One learned model's localizer in-process (``viewloc_core.localize.localize``).
+
+    Each call leaves the localization's own stage times in
+    :attr:`last_timing_ms` (``features``, ``align``, ``views``, ``pose`` and
+    ``total``, ms; see ``LocalizationResult.timing_ms``), as
+    :class:`HttpLocalizer` leaves the server's: the bench reports their
+    medians beside the latency, so that a change of speed shows where it
+    came from.
+    """
+
+    def __init__(self, model: ObjectModel, refine: bool = True, max_detections: int = 1) -> None:
+        self.model = model
+        self.refine = refine
+        self.max_detections = max_detections
+        self.last_timing_ms: dict[str, float] = {}
+
+    def __call__(
+        self, image: NDArray[np.uint8], camera: Camera, max_detections: int | None = None
+    ) -> list[Detection]:
+        """Detections, best first (``max_detections`` None: the localizer's own)."""
+        from viewloc_core.localize import LocalizeOptions, localize
+
+        wanted = self.max_detections if max_detections is None else max_detections
+        result = localize(self.model, image, camera,
+                          LocalizeOptions(max_detections=wanted, refine=self.refine))
+        self.last_timing_ms = {k: float(v) for k, v in result.timing_ms.items()}
+        return list(result.detections)
 
 
 def _int_or_none(v: object) -> int | None:

@@ -184,7 +184,22 @@ def summarise(records: list[Record], objects: dict[str, BenchObject], width: int
             server_total_median_ms=round(float(np.median(server)), 2),
             server_total_p95_ms=round(float(np.percentile(server, 95)), 2),
         )
+    stages = stage_medians_ms(records)
+    if stages:
+        out["stage_median_ms"] = stages
     return out
+
+
+def stage_medians_ms(records: list[Record]) -> dict[str, float]:
+    """Median of each stage time the backend reported (a record's
+    ``timing_ms``: the core's ``features``, ``align``, ``views``, ``pose``,
+    ``total``; the HTTP client's and server's), over the records that have
+    it, ms; stages in the order they were first reported, empty without any."""
+    times: dict[str, list[float]] = {}
+    for r in records:
+        for stage, ms in r.get("timing_ms", {}).items():
+            times.setdefault(stage, []).append(float(ms))
+    return {stage: round(float(np.median(v)), 2) for stage, v in times.items()}
 
 
 def summarise_conditions(records: list[Record], objects: dict[str, BenchObject],
@@ -409,6 +424,9 @@ def format_table(name: str, bench: BenchSet, result: Record | None, header: str)
         f"false positives: {neg['false_positives']} in {neg['images_with_false_positive']}"
         f"/{neg['images']} images without the object"
     )
+    if o.get("stage_median_ms"):
+        lines.append("stage medians: " + ", ".join(
+            f"{stage} {ms:.1f}" for stage, ms in o["stage_median_ms"].items()) + " ms")
     if "copies" in result:
         c = result["copies"]
         lines.append(

@@ -282,3 +282,67 @@ def test_a_detection_goes_to_the_nearest_free_instance_it_recognizes() -> None:
     assert [d.score if d else None for d in assigned] == [0.8, 0.9]
     assert (duplicates, elsewhere) == (1, 1)
     assert runner.assign_detections([], targets, obj, cam) == ([None, None], 0, 0)
+
+
+class _TimedOracle:
+    """The oracle's answers, each call leaving a stage breakdown as the
+    core's and the HTTP localizers do (``last_timing_ms``)."""
+
+    def __init__(self, answer: object) -> None:
+        self.answer = answer
+        self.calls = 0
+        self.last_timing_ms: dict[str, float] = {}
+
+    def __call__(self, image: np.ndarray, camera: Camera) -> list[Detection]:
+        self.calls += 1
+        self.last_timing_ms = {"features": 10.0 * self.calls, "pose": 1.0, "total": 20.0}
+        return self.answer(image, camera)  # type: ignore[operator, no-any-return]
+
+
+def test_stage_medians_are_summarised_and_printed(tiny_paper_set: Path) -> None:
+    bench = sets.load_generated(tiny_paper_set)
+
+    class Timed(OracleBackend):
+        def learn(self, obj: sets.BenchObject) -> LearnedObject:
+            learned = super().learn(obj)
+            return LearnedObject(obj.name, _TimedOracle(learned.localize), 0.01, 130, 18)
+
+    res = runner.evaluate_set(bench, Timed(bench, "", fp=False), log=lambda s: None)
+    posed = [im for im in bench.images if im.targets[0].pose is not None]
+    # The calls are numbered in image order; the records are the posed images'.
+    calls = [i + 1 for i, im in enumerate(bench.images) if im.targets[0].pose is not None]
+    assert len(res["records"]) == len(posed)
+    stages = res["overall"]["stage_median_ms"]
+    assert list(stages) == ["features", "pose", "total"]
+    assert stages["features"] == pytest.approx(float(np.median(10.0 * np.array(calls))))
+    assert stages["pose"] == 1.0 and stages["total"] == 20.0
+    table = runner.format_table("paper", bench, res, "oracle")
+    assert f"stage medians: features {stages['features']:.1f}, pose 1.0, total 20.0 ms" in table
+
+
+def test_records_without_a_breakdown_have_no_stage_medians(tiny_paper_set: Path) -> None:
+    bench = sets.load_generated(tiny_paper_set)
+    res = runner.evaluate_set(bench, OracleBackend(bench, "", fp=False), log=lambda s: None)
+    assert "stage_median_ms" not in res["overall"]
+    assert "stage medians" not in runner.format_table("paper", bench, res, "oracle")
+    assert runner.stage_medians_ms([{"timing_ms": {"a": 1.0}}, {"timing_ms": {"a": 3.0, "b": 2.0}},
+                                    {}]) == {"a": 2.0, "b": 2.0}
+
+
+def test_the_core_localizer_leaves_its_stage_times() -> None:
+    import trimesh
+
+    from viewloc_bench.localizers import CoreLocalizer
+    from viewloc_core.learn import LearningConfig, learn_from_mesh
+
+    model = learn_from_mesh(trimesh.creation.box((60.0, 40.0, 20.0)),
+                            LearningConfig(max_level=1, min_level=1))
+    localizer = CoreLocalizer(model)
+    cam = Camera(300.0, 300.0, 80.0, 60.0, 160, 120)
+    image = np.full((120, 160, 3), 128, np.uint8)
+    image[40:80, 50:110] = 200  # something to find: edges
+    localizer(image, cam)
+    assert {"features", "total"} <= set(localizer.last_timing_ms)
+    assert all(ms >= 0.0 for ms in localizer.last_timing_ms.values())
+    # Asked for more detections than its own default, it still answers.
+    assert isinstance(localizer(image, cam, max_detections=2), list)
