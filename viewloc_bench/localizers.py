@@ -179,7 +179,7 @@ class CoreLocalizer:
         wanted = self.max_detections if max_detections is None else max_detections
         result = localize(self.model, image, camera,
                           LocalizeOptions(max_detections=wanted, refine=self.refine))
-        self.last_timing_ms = {k: float(v) for k, v in result.timing_ms.items()}
+        self.last_timing_ms = dict(result.timing_ms)
         return list(result.detections)
 
 
