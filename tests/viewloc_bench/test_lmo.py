@@ -150,6 +150,17 @@ def test_composite_pastes_each_target_at_its_pose_once(tmp_path: Path, plain: bo
         # The box's vertex colour (30, 120, 40), lit: green above red and blue.
         blue, green, red = (int(c) for c in seen[v, u])
         assert green > red and green > blue
+        # The outline's pixels blend the part with what is behind it: no
+        # dark rim (a render over black pasted by its mask had one).
+        part = np.any(seen != photo, axis=2) if not plain else np.any(
+            seen != lmo_composite.PLAIN_GREY, axis=2)
+        inner = cv2.erode(part.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+        rim = part & ~inner
+        assert rim.any() and inner.any()
+        floor = min(int(np.median(seen[inner][:, 1])), int(np.min(photo[rim][:, 1])))
+        if plain:
+            floor = min(int(np.median(seen[inner][:, 1])), lmo_composite.PLAIN_GREY)
+        assert int(np.min(seen[rim][:, 1])) >= floor - 8
     # Read again, not rendered again.
     stamps = [im.path.stat().st_mtime_ns for im in pasted.images]
     again = lmo_composite.composite(bench, out, plain)
