@@ -37,6 +37,7 @@ from numpy.typing import NDArray
 
 from model_store.files import atomic_write_bytes
 from viewloc_bench.sets import BenchImage, BenchSet
+from viewloc_core.camera import Camera
 from viewloc_core.pose import Pose
 
 if TYPE_CHECKING:
@@ -51,7 +52,7 @@ COMPOSITE_SETS = (COMPOSITE, PLAIN)
 PLAIN_GREY = 128
 
 
-def _pasted(renderer: Renderer, prepared: PreparedMesh, image: BenchImage, pose: Pose,
+def _pasted(renderer: Renderer, prepared: PreparedMesh, camera: Camera, pose: Pose,
             photo_rgb: NDArray[np.uint8] | None) -> NDArray[np.uint8]:
     """The part rendered at ``pose`` over ``photo_rgb`` (RGB), or over
     :data:`PLAIN_GREY` when None.
@@ -59,17 +60,18 @@ def _pasted(renderer: Renderer, prepared: PreparedMesh, image: BenchImage, pose:
     The outline's pixels are anti-aliased: blended with the background the
     renderer draws. Pasting only the part's mask of a render over black
     would give it a dark rim one pixel wide, an edge just inside the true
-    outline (the refinement took it: fits 1-3 % too far for parts 70 px
-    across). Over grey the renderer blends with the grey itself; over a
+    outline (the knob of the novel set over grey, 20 poses: fits a median
+    3.2 % too far with the rim against 2.5 % without it at 70 px across,
+    1.0 % against 0.3 % at 150 px). Over grey the renderer blends with the grey itself; over a
     photo the render over black and over white give each pixel's
     coverage, and the photo shows through the uncovered share.
     """
     if photo_rgb is None:
         grey = (PLAIN_GREY, PLAIN_GREY, PLAIN_GREY)
-        return renderer.render(prepared, image.camera, pose, background_rgb=grey).color
-    on_black = renderer.render(prepared, image.camera, pose,
+        return renderer.render(prepared, camera, pose, background_rgb=grey).color
+    on_black = renderer.render(prepared, camera, pose,
                                background_rgb=(0, 0, 0)).color.astype(np.float64)
-    on_white = renderer.render(prepared, image.camera, pose,
+    on_white = renderer.render(prepared, camera, pose,
                                background_rgb=(255, 255, 255)).color.astype(np.float64)
     uncovered = np.clip((on_white - on_black) / 255.0, 0.0, 1.0)
     blended = on_black + uncovered * photo_rgb.astype(np.float64)
@@ -119,7 +121,7 @@ def composite(bench: BenchSet, out_dir: Path, plain: bool) -> BenchSet:
                 photo = cv2.imread(str(image.path), cv2.IMREAD_COLOR)
                 if photo is None:
                     raise FileNotFoundError(f"cannot read the photo {image.path}")
-                pasted = _pasted(renderer, prepared[target.object_name], image, target.pose,
+                pasted = _pasted(renderer, prepared[target.object_name], image.camera, target.pose,
                                  None if plain else np.asarray(photo[:, :, ::-1], np.uint8))
                 # OpenCV writes BGR.
                 ok, png = cv2.imencode(".png", np.ascontiguousarray(pasted[:, :, ::-1]))
