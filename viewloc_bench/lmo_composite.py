@@ -52,6 +52,14 @@ COMPOSITE_SETS = (COMPOSITE, PLAIN)
 PLAIN_GREY = 128
 
 
+def _photo_rgb(path: Path) -> NDArray[np.uint8]:
+    """The photo at ``path`` as (H, W, 3) uint8 RGB."""
+    photo = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if photo is None:
+        raise FileNotFoundError(f"cannot read the photo {path}")
+    return np.ascontiguousarray(photo[:, :, ::-1])
+
+
 def _pasted(renderer: Renderer, prepared: PreparedMesh, camera: Camera, pose: Pose,
             photo_rgb: NDArray[np.uint8] | None) -> NDArray[np.uint8]:
     """The part rendered at ``pose`` over ``photo_rgb`` (RGB), or over
@@ -118,11 +126,9 @@ def composite(bench: BenchSet, out_dir: Path, plain: bool) -> BenchSet:
                                         force="mesh")
                     assert isinstance(mesh, trimesh.Trimesh)
                     prepared[target.object_name] = prepare(mesh)
-                photo = cv2.imread(str(image.path), cv2.IMREAD_COLOR)
-                if photo is None:
-                    raise FileNotFoundError(f"cannot read the photo {image.path}")
+                photo_rgb = None if plain else _photo_rgb(image.path)
                 pasted = _pasted(renderer, prepared[target.object_name], image.camera, target.pose,
-                                 None if plain else np.asarray(photo[:, :, ::-1], np.uint8))
+                                 photo_rgb)
                 # OpenCV writes BGR.
                 ok, png = cv2.imencode(".png", np.ascontiguousarray(pasted[:, :, ::-1]))
                 if not ok:

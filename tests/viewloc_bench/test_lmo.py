@@ -157,9 +157,8 @@ def test_composite_pastes_each_target_at_its_pose_once(tmp_path: Path, plain: bo
         inner = cv2.erode(part.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
         rim = part & ~inner
         assert rim.any() and inner.any()
-        floor = min(int(np.median(seen[inner][:, 1])), int(np.min(photo[rim][:, 1])))
-        if plain:
-            floor = min(int(np.median(seen[inner][:, 1])), lmo_composite.PLAIN_GREY)
+        behind = lmo_composite.PLAIN_GREY if plain else int(np.min(photo[rim][:, 1]))
+        floor = min(int(np.median(seen[inner][:, 1])), behind)
         assert int(np.min(seen[rim][:, 1])) >= floor - 8
     # Read again, not rendered again.
     stamps = [im.path.stat().st_mtime_ns for im in pasted.images]
