@@ -85,7 +85,7 @@ from viewloc_core.shading import (
     surface_samples,
     visible_samples,
 )
-from viewloc_core.symmetry import canonical_pose, within_angle_deg
+from viewloc_core.symmetry import Symmetries, canonical_pose, within_angle_deg
 from viewloc_core.view_search import (
     ViewCandidate,
     ViewTemplates,
@@ -382,6 +382,25 @@ RIVAL_SCALE_FACTORS = (0.88, 1.14)
 #: 0.227 / 174 ms. The fifth is not worth its 20 ms. hard-photos (learned
 #: from photos, so with a colour cue), 4 or 5 locations: the same poses.
 COLOUR_LOCATIONS = 4
+
+#: Out-of-plane turn of the tilted restarts of a fit (:func:`_tilted_refit`),
+#: degrees. The refinement's capture range in rotation is about 10°: from
+#: the truth turned 5 / 10 / 15 / 20° (novel bench set, tee, clamp and
+#: knob, every third image, three starts each) the full fit ended within 3°
+#: of it in 0.90 / 0.68 / 0.43 / 0.31 of 126 fits, while the view search's
+#: starts are up to about 10° off (its 162 views lie about 17° apart)
+#: before the error of their in-plane turn.
+TILT_DEG = 10.0
+
+#: A tilted restart replaces the fit only when it ends at least this far
+#: from it (degrees, the part's symmetries aside) and confirms at least
+#: ``TILT_MIN_GAIN`` more of its contour: two fits a few tenths of a degree
+#: or a hundredth of the contour apart are the same fit. Without these bars
+#: (any gain counted) restarts replaced right fits with others a degree
+#: off (5° starts: within 3° in 0.90 of the fits, as without restarts; with
+#: them 0.94).
+TILT_MIN_MOVE_DEG = 3.0
+TILT_MIN_GAIN = 0.02
 
 #: Square windows of the colour proposals: half their side as a share of
 #: the part's image diameter (the part's middle, whatever its shape), over
@@ -1259,6 +1278,64 @@ def _refit_from_other_starts(
     return result, t_view, similarity, start
 
 
+def _camera_tilts(angle_deg: float) -> NDArray[np.float64]:
+    """Turns by ``angle_deg`` about the camera's x and y axes, each way,
+    (4, 3, 3) camera-frame rotations."""
+    a = math.radians(angle_deg)
+    c, s = math.cos(a), math.sin(a)
+    return np.array([m for sign in (1.0, -1.0) for m in (
+        [[1.0, 0.0, 0.0], [0.0, c, -sign * s], [0.0, sign * s, c]],
+        [[c, 0.0, sign * s], [0.0, 1.0, 0.0], [-sign * s, 0.0, c]])])
+
+
+def _tilted_refit(edges: EdgePyramid, camera: Camera, contour: ContourModel, sym: Symmetries,
+                  result: RefinementResult, fit_options: _FitOptions) -> RefinementResult:
+    """A full fit, or the fit from its pose tilted out of the image plane
+    when that confirms clearly more of the contour.
+
+    A fit that starts more than about 10° off in rotation often stops at a
+    pose that explains part of the outline (TILT_DEG): a wrong tilt moves
+    a smooth outline little. Quick fits from the pose tilted by
+    ``TILT_DEG`` about the camera's x and y axes, both ways, about the
+    part's centre, reach the neighbouring basins; the one that confirms the
+    most of its contour gets the full fit when it ends elsewhere, and that
+    fit replaces ``result`` under the bars of TILT_MIN_MOVE_DEG and
+    TILT_MIN_GAIN. From the truth turned 5 / 10 / 15 / 20° (the figures of
+    TILT_DEG) the fits ended within 3° in 0.94 / 0.86 / 0.71 / 0.55 of the
+    cases instead of 0.90 / 0.68 / 0.43 / 0.31.
+
+    Parameters
+    ----------
+    edges : EdgePyramid
+    camera : Camera
+    contour : ContourModel
+    sym : Symmetries
+        The part's symmetries: a turn about them is no move.
+    result : RefinementResult
+        The full fit (pose of the part's centred frame, object -> camera, mm).
+    fit_options : _FitOptions
+        The location's quick and full refinements.
+
+    Returns
+    -------
+    RefinementResult
+        ``result`` or the full fit of the best tilted restart.
+    """
+    R = result.pose.R_m2c
+    starts = [Pose(tilt @ R, result.pose.t_m2c) for tilt in _camera_tilts(TILT_DEG)]
+    quick_fits = each_on_both(
+        lambda start: refine_pose(edges, camera, start, contour, fit_options.quick), starts)
+    best = max(quick_fits, key=_fit_rank)
+    if (_fit_rank(best) <= _fit_rank(result)
+            or within_angle_deg(best.pose.R_m2c, R, sym, TILT_MIN_MOVE_DEG)):
+        return result
+    other = refine_pose(edges, camera, best.pose, contour, fit_options.final)
+    if (_fit_rank(other) >= _fit_rank(result) + TILT_MIN_GAIN
+            and not within_angle_deg(other.pose.R_m2c, R, sym, TILT_MIN_MOVE_DEG)):
+        return other
+    return result
+
+
 def _final_detection(
     model: ObjectModel, loc: _Located, level: NDArray[np.generic], factor: float,
     camera: Camera, edges: EdgePyramid | None, contour: ContourModel | None,
@@ -1284,6 +1361,8 @@ def _final_detection(
     if contour is not None and edges is not None:
         fit_options = _FitOptions.near(edges, camera, pose_centred, model.diameter_mm)
         result = refine_pose(edges, camera, pose_centred, contour, fit_options.final)
+        result = _tilted_refit(edges, camera, contour, model.symmetry_group(), result,
+                               fit_options)
         if _fit_rank(result) < GOOD_FIT_FRACTION:
             result, t_view, similarity, pose_centred = _refit_from_other_starts(
                 model, loc, factor, camera, edges, contour, t_view, similarity, pose_centred,

@@ -9,7 +9,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from tests.viewloc_core.conftest import ORANGE, blob, coloured_bracket, render_copies, render_scene
+from tests.viewloc_core.conftest import (
+    ORANGE,
+    TABLE_LIGHTS,
+    blob,
+    coloured_bracket,
+    render_copies,
+    render_scene,
+)
 from tests.viewloc_core.test_shading import LIGHTS
 from viewloc_core import localize as localize_module
 from viewloc_core.align import Match2D
@@ -32,6 +39,7 @@ from viewloc_core.localize import (
     SPARE_MIN_CHANCE_CORRECTED,
     SPARE_MIN_CHANCE_CORRECTED_IN_COLOUR,
     SPARE_MIN_VIEW_EVIDENCE_SHARE,
+    TILT_MIN_GAIN,
     LocalizeOptions,
     _ColourScene,
     _contour_model,
@@ -50,6 +58,7 @@ from viewloc_core.localize import (
     _Shading,
     _spare_locations,
     _surface,
+    _tilted_refit,
     _view_candidate_count,
     localize,
     localize_in_scene,
@@ -59,6 +68,7 @@ from viewloc_core.near_symmetry import NearSymmetries
 from viewloc_core.pose import Pose, rotation_angle_deg
 from viewloc_core.refine import RefinementResult, RefineOptions, prepare_edges, refine_pose
 from viewloc_core.render import prepare
+from viewloc_core.symmetry import Symmetries
 from viewloc_core.view_search import ViewCandidate
 from viewloc_core.view_sphere import view_directions
 
@@ -750,6 +760,35 @@ def test_a_start_as_far_off_as_at_640_px_is_captured_in_a_1280_px_image(
     assert rot_deg < 1.0 and t_mm < 3.0
     rot_deg, t_mm = error(FINAL_REFINE)
     assert rot_deg > 2.0 or t_mm > 6.0
+
+
+def test_fits_stuck_after_far_starts_are_freed_by_their_tilted_restarts(
+        bracket_contour_scene) -> None:
+    # Twelve poses of the ribbed bracket, each refined from a start turned
+    # 14° out of the image plane (and 2 % too far): beyond the refinement's
+    # capture range in rotation for some. The tilted restarts free two of
+    # the stuck fits and never replace a fit but by a clearly better one.
+    renderer, prepared, contour = bracket_contour_scene
+    cam = Camera(600.0, 600.0, 319.5, 239.5, 640, 480)
+    no_symmetry = Symmetries(np.eye(4)[None])
+    right_plain = right_tilted = 0
+    for seed in range(12):
+        rng = np.random.default_rng(seed)
+        truth = Pose(Rotation.random(random_state=seed).as_matrix(), np.array([10.0, -5.0, 500.0]))
+        image = renderer.render(prepared, cam, truth, lights=TABLE_LIGHTS,
+                                background_rgb=(90, 90, 90)).color
+        edges = prepare_edges(image, 2)
+        options = _FitOptions.near(edges, cam, truth, diameter_mm=127.4)  # the bracket's
+        axis = rng.normal(size=2)
+        axis /= np.linalg.norm(axis)
+        turn = Rotation.from_rotvec(np.radians(14.0) * np.array([axis[0], axis[1], 0.0]))
+        start = Pose(turn.as_matrix() @ truth.R_m2c, truth.t_m2c * [1.0, 1.0, 1.02])
+        plain = refine_pose(edges, cam, start, contour, options.final)
+        tilted = _tilted_refit(edges, cam, contour, no_symmetry, plain, options)
+        assert tilted is plain or tilted.inlier_fraction >= plain.inlier_fraction + TILT_MIN_GAIN
+        right_plain += rotation_angle_deg(plain.pose.R_m2c, truth.R_m2c) < 1.0
+        right_tilted += rotation_angle_deg(tilted.pose.R_m2c, truth.R_m2c) < 1.0
+    assert right_tilted >= right_plain + 2
 
 
 def test_parts_localized_in_one_prepared_scene_get_their_own_answers(
