@@ -23,6 +23,7 @@ import cv2
 import numpy as np
 import trimesh
 from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
 
 from viewloc_core import (
     contour_kernels,
@@ -1278,14 +1279,14 @@ def _refit_from_other_starts(
     return result, t_view, similarity, start
 
 
+#: The axes of the tilted restarts: the camera's x and y, each way.
+_TILT_AXES = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+
+
 def _camera_tilts(angle_deg: float) -> NDArray[np.float64]:
     """Turns by ``angle_deg`` about the camera's x and y axes, each way,
     (4, 3, 3) camera-frame rotations."""
-    a = math.radians(angle_deg)
-    c, s = math.cos(a), math.sin(a)
-    return np.array([m for sign in (1.0, -1.0) for m in (
-        [[1.0, 0.0, 0.0], [0.0, c, -sign * s], [0.0, sign * s, c]],
-        [[c, 0.0, sign * s], [0.0, 1.0, 0.0], [-sign * s, 0.0, c]])])
+    return np.asarray(Rotation.from_rotvec(np.radians(angle_deg) * _TILT_AXES).as_matrix())
 
 
 def _tilted_refit(edges: EdgePyramid, camera: Camera, contour: ContourModel, sym: Symmetries,
