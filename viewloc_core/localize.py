@@ -242,6 +242,37 @@ DEPTH_STARTS = (1.08, 0.93, 1.16, 0.86)
 #: Runners-up of the view search tried as extra starts of a poor first fit.
 RUNNER_UP_STARTS = 2
 
+#: Out-of-plane turn of the tilted restarts of a fit (:func:`_tilted_refit`),
+#: degrees. The refinement's capture range in rotation is about 10°: from
+#: the truth turned 5 / 10 / 15 / 20° (novel bench set, tee, clamp and
+#: knob, every third image, three starts each) the full fit ended within 3°
+#: of it in 0.90 / 0.68 / 0.43 / 0.31 of 126 fits, while the view search's
+#: starts are up to about 10° off (its 162 views lie about 17° apart)
+#: before the error of their in-plane turn.
+TILT_DEG = 10.0
+
+#: A tilted restart replaces the fit only when it ends at least this far
+#: from it (degrees, the part's symmetries aside) and confirms at least
+#: ``TILT_MIN_GAIN`` more of its contour: two fits a few tenths of a degree
+#: or a hundredth of the contour apart are the same fit. Without these bars
+#: (any gain counted) restarts replaced right fits with others a degree
+#: off (5° starts: within 3° in 0.90 of the fits, as without restarts; with
+#: them 0.94).
+TILT_MIN_MOVE_DEG = 3.0
+TILT_MIN_GAIN = 0.02
+
+#: The axes of the tilted restarts: six in the image plane, 60° apart.
+#: Four (the camera's x and y, each way) gave the same hard set and up to
+#: 0.012 less AR_MSSD on the novel set (learning seeds 0-3: 0.865 / 0.882 /
+#: 0.885 / 0.834 against 0.869 / 0.882 / 0.894 / 0.846), LM-O 0.137 / 0.191
+#: against 0.139 / 0.191, for two quick fits fewer (pose stage about 1 ms).
+_TILT_AXES = np.array([[math.cos(a), math.sin(a), 0.0]
+                       for a in np.radians(np.arange(0.0, 360.0, 60.0))])
+
+#: The tilted restarts' turns, :data:`TILT_DEG` about each of the
+#: :data:`_TILT_AXES`, (6, 3, 3) camera-frame rotations.
+_TILTS = np.asarray(Rotation.from_rotvec(np.radians(TILT_DEG) * _TILT_AXES).as_matrix())
+
 #: Training views the view search returns per location: the first is fitted,
 #: the others are the starts that compete with it (see ``_other_sides``).
 VIEW_CANDIDATES = 6
@@ -383,25 +414,6 @@ RIVAL_SCALE_FACTORS = (0.88, 1.14)
 #: 0.227 / 174 ms. The fifth is not worth its 20 ms. hard-photos (learned
 #: from photos, so with a colour cue), 4 or 5 locations: the same poses.
 COLOUR_LOCATIONS = 4
-
-#: Out-of-plane turn of the tilted restarts of a fit (:func:`_tilted_refit`),
-#: degrees. The refinement's capture range in rotation is about 10°: from
-#: the truth turned 5 / 10 / 15 / 20° (novel bench set, tee, clamp and
-#: knob, every third image, three starts each) the full fit ended within 3°
-#: of it in 0.90 / 0.68 / 0.43 / 0.31 of 126 fits, while the view search's
-#: starts are up to about 10° off (its 162 views lie about 17° apart)
-#: before the error of their in-plane turn.
-TILT_DEG = 10.0
-
-#: A tilted restart replaces the fit only when it ends at least this far
-#: from it (degrees, the part's symmetries aside) and confirms at least
-#: ``TILT_MIN_GAIN`` more of its contour: two fits a few tenths of a degree
-#: or a hundredth of the contour apart are the same fit. Without these bars
-#: (any gain counted) restarts replaced right fits with others a degree
-#: off (5° starts: within 3° in 0.90 of the fits, as without restarts; with
-#: them 0.94).
-TILT_MIN_MOVE_DEG = 3.0
-TILT_MIN_GAIN = 0.02
 
 #: Square windows of the colour proposals: half their side as a share of
 #: the part's image diameter (the part's middle, whatever its shape), over
@@ -1279,21 +1291,6 @@ def _refit_from_other_starts(
     return result, t_view, similarity, start
 
 
-#: The axes of the tilted restarts: six in the image plane, 60° apart.
-#: Four (the camera's x and y, each way) gave the same hard set and up to
-#: 0.012 less AR_MSSD on the novel set (learning seeds 0-3: 0.865 / 0.882 /
-#: 0.885 / 0.834 against 0.869 / 0.882 / 0.894 / 0.846), LM-O 0.137 / 0.191
-#: against 0.139 / 0.191, for two quick fits fewer (pose stage about 1 ms).
-_TILT_AXES = np.array([[math.cos(a), math.sin(a), 0.0]
-                       for a in np.radians(np.arange(0.0, 360.0, 60.0))])
-
-
-def _camera_tilts(angle_deg: float) -> NDArray[np.float64]:
-    """Turns by ``angle_deg`` about the :data:`_TILT_AXES`, (6, 3, 3)
-    camera-frame rotations."""
-    return np.asarray(Rotation.from_rotvec(np.radians(angle_deg) * _TILT_AXES).as_matrix())
-
-
 def _tilted_refit(edges: EdgePyramid, camera: Camera, contour: ContourModel, sym: Symmetries,
                   result: RefinementResult, fit_options: _FitOptions) -> RefinementResult:
     """A full fit, or the fit from its pose tilted out of the image plane
@@ -1302,11 +1299,11 @@ def _tilted_refit(edges: EdgePyramid, camera: Camera, contour: ContourModel, sym
     A fit that starts more than about 10° off in rotation often stops at a
     pose that explains part of the outline (TILT_DEG): a wrong tilt moves
     a smooth outline little. Quick fits from the pose tilted by
-    ``TILT_DEG`` about six axes in the image plane (:data:`_TILT_AXES`),
-    about the part's centre, reach the neighbouring basins; the one that confirms the
-    most of its contour gets the full fit when it ends elsewhere, and that
-    fit replaces ``result`` under the bars of TILT_MIN_MOVE_DEG and
-    TILT_MIN_GAIN. From the truth turned 5 / 10 / 15 / 20° (the figures of
+    ``TILT_DEG`` about six axes in the image plane (:data:`_TILTS`), about
+    the part's centre, reach the neighbouring basins; the one that
+    confirms the most of its contour gets the full fit when it ends
+    elsewhere, and that fit replaces ``result`` under the bars of
+    TILT_MIN_MOVE_DEG and TILT_MIN_GAIN. From the truth turned 5 / 10 / 15 / 20° (the figures of
     TILT_DEG) the fits ended within 3° in 0.94 / 0.87 / 0.71 / 0.61 of the
     cases instead of 0.90 / 0.68 / 0.43 / 0.31.
 
@@ -1328,7 +1325,7 @@ def _tilted_refit(edges: EdgePyramid, camera: Camera, contour: ContourModel, sym
         ``result`` or the full fit of the best tilted restart.
     """
     R = result.pose.R_m2c
-    starts = [Pose(tilt @ R, result.pose.t_m2c) for tilt in _camera_tilts(TILT_DEG)]
+    starts = [Pose(tilt @ R, result.pose.t_m2c) for tilt in _TILTS]
     quick_fits = each_on_both(
         lambda start: refine_pose(edges, camera, start, contour, fit_options.quick), starts)
     best = max(quick_fits, key=_fit_rank)
