@@ -65,7 +65,7 @@ def footprint(samples: SurfaceSamples, camera: Camera, pose: Pose,
         Sorted unique cell ids (row-major over a grid covering the image and
         a margin of one image around it); empty when no sample is seen.
     """
-    uv, _ = visible_samples(samples, camera, pose)
+    uv = visible_samples(samples, camera, pose).uv
     if not len(uv):
         return np.zeros(0, np.int64)
     cols = int(np.ceil(camera.width / cell_px)) + 2

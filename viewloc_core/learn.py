@@ -46,7 +46,7 @@ from viewloc_core.features import (
     orientation_bin,
     to_grey_float,
 )
-from viewloc_core.mesh import MAX_FACES
+from viewloc_core.mesh import MAX_FACES, mesh_vertex_colours
 from viewloc_core.model import ModelView, ObjectModel, TrainingViews
 from viewloc_core.part_colour import ColourAccumulator
 from viewloc_core.pose import Pose, rot_z
@@ -670,6 +670,7 @@ def _finish(
         training=training,
         mesh_vertices_mm=None if mesh is None else np.asarray(mesh.vertices, np.float32),
         mesh_faces=None if mesh is None else np.asarray(mesh.faces, np.int32),
+        mesh_vertex_colours=None if mesh is None else mesh_vertex_colours(mesh),
         config=asdict(config),
     )
 

@@ -150,6 +150,11 @@ class ObjectModel:
         The part's chromaticity histogram over its training views
         (:mod:`viewloc_core.part_colour`); None when the part showed no
         colours of its own (a mesh without colours, grey training images).
+    mesh_vertex_colours : (N, 3) uint8 or None
+        sRGB colour of each mesh vertex when the uploaded mesh had colours of
+        its own (vertex or face colours, a texture); None otherwise. The
+        ranking's shading cue reads the part's own pattern from them
+        (:mod:`viewloc_core.shading`).
     default_min_score : float
         Detections below this score are not reported unless asked. The score
         is the share of the contour that image edges confirm; in clutter 6D
@@ -176,6 +181,7 @@ class ObjectModel:
     config: dict[str, Any] = field(default_factory=dict)
     symmetry_axis: F64 | None = None
     colour_histogram: F32 | None = None
+    mesh_vertex_colours: NDArray[np.uint8] | None = None
 
     def symmetry_group(self) -> Symmetries:
         """The part's symmetries as :class:`viewloc_core.symmetry.Symmetries`."""
@@ -239,6 +245,8 @@ def model_to_arrays(model: ObjectModel) -> tuple[dict[str, NDArray[Any]], dict[s
     if model.mesh_vertices_mm is not None and model.mesh_faces is not None:
         arrays["mesh_vertices_mm"] = model.mesh_vertices_mm
         arrays["mesh_faces"] = model.mesh_faces
+        if model.mesh_vertex_colours is not None:
+            arrays["mesh_vertex_colours"] = np.asarray(model.mesh_vertex_colours, np.uint8)
     contour_keys: list[str] = []
     contour_meta: dict[str, Any] = {}
     if model.contour is not None:
@@ -278,6 +286,19 @@ def _colour_histogram(arrays: dict[str, NDArray[Any]]) -> F32 | None:
     if hist.shape != (N_BINS,) or not np.all(np.isfinite(hist)):
         raise ValueError(f"colour_histogram must be {N_BINS} finite numbers")
     return hist
+
+
+def _mesh_vertex_colours(arrays: dict[str, NDArray[Any]]) -> NDArray[np.uint8] | None:
+    """The stored vertex colours, checked against the stored vertices; None
+    when the model has none."""
+    if "mesh_vertex_colours" not in arrays:
+        return None
+    colours = np.asarray(arrays["mesh_vertex_colours"])
+    vertices = arrays.get("mesh_vertices_mm")
+    if (colours.dtype != np.uint8 or vertices is None
+            or colours.shape != (len(vertices), 3)):
+        raise ValueError("mesh_vertex_colours must be one uint8 RGB triple per mesh vertex")
+    return colours
 
 
 def model_from_arrays(arrays: dict[str, NDArray[Any]], meta: dict[str, Any]) -> ObjectModel:
@@ -332,6 +353,7 @@ def model_from_arrays(arrays: dict[str, NDArray[Any]], meta: dict[str, Any]) -> 
             training=training,
             mesh_vertices_mm=arrays.get("mesh_vertices_mm"),
             mesh_faces=arrays.get("mesh_faces"),
+            mesh_vertex_colours=_mesh_vertex_colours(arrays),
             contour=contour,
             symmetries=np.asarray(arrays["symmetries"], np.float64),
             symmetry_axis=(np.asarray(arrays["symmetry_axis"], np.float64).reshape(6)

@@ -20,12 +20,21 @@ Flat-faced parts shade as a few constant patches, which wrong poses explain
 about as well; the agreement is then uninformative, not misleading. Texture
 and specular highlights lower it for every hypothesis alike (the fit is
 robust, so a highlight costs little).
+
+A part whose mesh has colours of its own (vertex colours, a texture) is not
+one colour: each sample also carries the brightness of the part's own
+colour there (its albedo), and the fit is albedo x SH(normal) plus an
+offset. The pattern then tells the sides apart where the outline cannot:
+LM-O ape, photos where the localizer had the right place but a wrong turn
+(13 of 24, mostly front for back): the fit refined from the truth explained
+more than the chosen one in 12 of the 13 with the albedo, in 6 without.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -53,6 +62,16 @@ MIN_VISIBLE = 40
 #: Reweighting passes of the robust fit.
 _IRLS_PASSES = 4
 
+#: Rec. 601 luminance weights of R, G, B.
+_LUMINANCE = np.array([0.299, 0.587, 0.114])
+
+#: A part whose own colours span less brightness than this (albedo 0..1)
+#: is of one colour: its samples carry no albedo.
+MIN_ALBEDO_SPREAD = 0.05
+
+#: The kernel's sign for a part of one colour.
+_NO_ALBEDO = np.empty(0)
+
 
 @dataclass(frozen=True, slots=True, eq=False)
 class SurfaceSamples:
@@ -69,16 +88,40 @@ class SurfaceSamples:
         Typical distance between neighbouring samples, mm.
     extent_mm : float
         Longest side of the samples' bounding box, mm.
+    albedo : (N,) float64 or None
+        Brightness (Rec. 601 luminance, 0..1, sRGB) of the part's own colour
+        at each sample; None for a part of one colour (a mesh without
+        colours).
     """
 
     points_mm: F64
     normals: F64
     spacing_mm: float
     extent_mm: float
+    albedo: F64 | None = None
+
+
+class VisibleSamples(NamedTuple):
+    """The surface samples the camera sees at a pose (:func:`visible_samples`).
+
+    Attributes
+    ----------
+    uv : (M, 2) float64
+        Pixel positions, inside the image.
+    normals_cam : (M, 3) float64
+        Unit normals, camera frame.
+    sample_index : (M,) int64
+        Their indices among the :class:`SurfaceSamples`, increasing.
+    """
+
+    uv: F64
+    normals_cam: F64
+    sample_index: NDArray[np.int64]
 
 
 def surface_samples(vertices_mm: NDArray[np.floating], faces: NDArray[np.integer],
-                    count: int = 2000, seed: int = 0) -> SurfaceSamples:
+                    count: int = 2000, seed: int = 0,
+                    vertex_colours: NDArray[np.integer] | None = None) -> SurfaceSamples:
     """Spread ``count`` samples over a triangle mesh's surface, area-weighted.
 
     Parameters
@@ -90,6 +133,10 @@ def surface_samples(vertices_mm: NDArray[np.floating], faces: NDArray[np.integer
         Number of samples.
     seed : int
         Sampling is deterministic for a given seed.
+    vertex_colours : (V, 3) uint8 array, optional
+        sRGB colour of each vertex; the samples' albedo is their luminance,
+        interpolated across each face (none when it spans less than
+        :data:`MIN_ALBEDO_SPREAD`).
 
     Returns
     -------
@@ -107,12 +154,21 @@ def surface_samples(vertices_mm: NDArray[np.floating], faces: NDArray[np.integer
     flat = length[:, 0] < 1e-6
     normals = np.where(flat[:, None], smooth.face_normals[face_index], normals
                        / np.maximum(length, 1e-12))
+    albedo = None
+    if vertex_colours is not None:
+        # smooth_shade keeps the faces in their order (it splits vertices
+        # only), so face_index names the same face of the input.
+        luminance = np.asarray(vertex_colours, np.float64)[:, :3] @ _LUMINANCE / 255.0
+        albedo = np.einsum("nk,nk->n", bary, luminance[np.asarray(faces)[face_index]])
+        if float(np.ptp(albedo)) < MIN_ALBEDO_SPREAD:
+            albedo = None  # one colour: no pattern, and the plain fit's basis
     area = float(mesh.area)
     return SurfaceSamples(
         points_mm=np.asarray(points, np.float64),
         normals=np.asarray(normals, np.float64),
         spacing_mm=math.sqrt(area / max(count, 1)),
         extent_mm=float(np.ptp(points, axis=0).max()) if count else 0.0,
+        albedo=albedo,
     )
 
 
@@ -158,26 +214,25 @@ def intensity_at(image: NDArray[np.generic], uv: NDArray[np.floating]) -> F64:
     values = cv2.remap(arr, uv32[:, 0][None], uv32[:, 1][None], cv2.INTER_LINEAR)[0]
     values = np.asarray(values, np.float64)
     if values.ndim == 2:
-        values = values[:, :3] @ np.array([0.299, 0.587, 0.114])
+        values = values[:, :3] @ _LUMINANCE
     return np.nan_to_num(values)
 
 
-def visible_samples(samples: SurfaceSamples, camera: Camera, pose: Pose) -> tuple[F64, F64]:
-    """Image positions (M, 2) and camera-frame normals (M, 3) of the samples
-    the camera sees at ``pose``: in front of it, facing it (cosine with the
-    ray above :data:`MIN_FACING_COS`), inside the image and, on a concave
-    part, not behind a nearer surface
+def visible_samples(samples: SurfaceSamples, camera: Camera, pose: Pose) -> VisibleSamples:
+    """The samples the camera sees at ``pose``: in front of it, facing it
+    (cosine with the ray above :data:`MIN_FACING_COS`), inside the image
+    and, on a concave part, not behind a nearer surface
     (:func:`viewloc_core.shading_kernels.visible_samples`)."""
-    return shading_kernels.visible_samples(
+    return VisibleSamples(*shading_kernels.visible_samples(
         samples.points_mm, samples.normals, np.ascontiguousarray(pose.R_m2c, np.float64),
         np.ascontiguousarray(pose.t_m2c, np.float64),
         np.array([camera.fx, camera.fy, camera.cx, camera.cy]), camera.dist8,
-        camera.has_distortion, camera.width, camera.height, samples.spacing_mm, MIN_FACING_COS)
+        camera.has_distortion, camera.width, camera.height, samples.spacing_mm, MIN_FACING_COS))
 
 
 def shading_agreement(image: NDArray[np.generic], camera: Camera, pose: Pose,
                       samples: SurfaceSamples,
-                      visible: tuple[F64, F64] | None = None) -> float | None:
+                      visible: VisibleSamples | None = None) -> float | None:
     """How well the surface at ``pose`` explains the image's intensities.
 
     Parameters
@@ -189,7 +244,7 @@ def shading_agreement(image: NDArray[np.generic], camera: Camera, pose: Pose,
     pose : Pose
         Object -> camera, the frame of ``samples``.
     samples : SurfaceSamples
-    visible : (uv (M, 2), normals (M, 3)) or None
+    visible : VisibleSamples or None
         :func:`visible_samples` of ``samples`` at ``pose`` when the caller
         has them already (a rival fit is ranked by its shading and by its
         colours under the same samples); computed here when None.
@@ -198,13 +253,15 @@ def shading_agreement(image: NDArray[np.generic], camera: Camera, pose: Pose,
     -------
     float in [0, 1] or None
         Share of the intensity variance of the visible samples that a
-        robust fit on their normals' spherical harmonics explains; None when
+        robust fit on their normals' spherical harmonics (times their
+        albedo, when the samples have one) explains; None when
         fewer than :data:`MIN_VISIBLE` samples are seen or the part looks
         uniform (nothing to explain).
     """
-    uv, normals = visible_samples(samples, camera, pose) if visible is None else visible
+    uv, normals, index = visible_samples(samples, camera, pose) if visible is None else visible
     if len(uv) < MIN_VISIBLE:
         return None
-    explained = shading_kernels.explained_variance(intensity_at(image, uv), normals,
+    albedo = _NO_ALBEDO if samples.albedo is None else samples.albedo[index]
+    explained = shading_kernels.explained_variance(intensity_at(image, uv), normals, albedo,
                                                    _IRLS_PASSES)
     return None if math.isnan(explained) else explained

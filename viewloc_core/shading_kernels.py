@@ -34,7 +34,7 @@ _LSTSQ_RCOND = 9.0 * float(np.finfo(np.float64).eps)
 def visible_samples(
     points_mm: F64, normals: F64, R_m2c: F64, t_m2c: F64, intrinsics: F64, dist: F64,
     distorted: bool, width: int, height: int, spacing_mm: float, min_facing_cos: float,
-) -> tuple[F64, F64]:  # pragma: no cover - compiled
+) -> tuple[F64, F64, NDArray[np.int64]]:  # pragma: no cover - compiled
     """Image positions and camera-frame normals of the samples the camera sees.
 
     Parameters
@@ -62,11 +62,14 @@ def visible_samples(
     uv : (M, 2) float64
         Pixel positions, inside the image.
     normals_cam : (M, 3) float64
-        Their normals, camera frame. In the order of the samples.
+        Their normals, camera frame.
+    index : (M,) int64
+        Their indices among the samples, increasing.
     """
     n = points_mm.shape[0]
     uv = np.empty((n, 2))
     normals_cam = np.empty((n, 3))
+    index = np.empty(n, np.int64)
     z = np.empty(n)
     m = 0
     for i in range(n):
@@ -91,10 +94,11 @@ def visible_samples(
         normals_cam[m, 0] = ncx
         normals_cam[m, 1] = ncy
         normals_cam[m, 2] = ncz
+        index[m] = i
         z[m] = zc
         m += 1
     if m == 0:
-        return uv[:0], normals_cam[:0]
+        return uv[:0], normals_cam[:0], index[:0]
     # Facing the camera is not enough on a concave part: of the samples that
     # land in one cell of a coarse depth buffer, only those near the nearest
     # are seen. A cell is about three samples wide at the part's distance,
@@ -118,7 +122,7 @@ def visible_samples(
             nearest[order[k]] = lowest
         start = stop
     seen = np.flatnonzero(z[:m] <= nearest + 2.0 * spacing_mm)
-    return uv[seen], normals_cam[seen]
+    return uv[seen], normals_cam[seen], index[seen]
 
 
 @njit(cache=True, nogil=True)
@@ -133,10 +137,11 @@ def _tukey(residual: F64, min_scale: float) -> F64:  # pragma: no cover - compil
 
 
 @njit(cache=True, nogil=True)
-def explained_variance(intensity: F64, normals_cam: F64,
+def explained_variance(intensity: F64, normals_cam: F64, albedo: F64,
                        passes: int) -> float:  # pragma: no cover - compiled
     """Share of the intensities' variance a robust fit on their normals'
-    first nine spherical harmonics explains.
+    first nine spherical harmonics explains, each scaled by the surface's
+    own brightness there when it has a pattern.
 
     Parameters
     ----------
@@ -144,6 +149,11 @@ def explained_variance(intensity: F64, normals_cam: F64,
         Image brightness at the samples.
     normals_cam : (M, 3) float64
         Their unit normals.
+    albedo : (M,) or (0,) float64
+        The part's own brightness at the samples (0..1), or empty for a part
+        of one colour. Given, the fit is ``albedo * SH(normal) . c + b``:
+        the light scales the part's pattern, and ``b`` takes the camera's
+        black level and ambient light, which do not.
     passes : int
         Reweighting passes (Tukey's biweight on the residuals).
 
@@ -154,18 +164,23 @@ def explained_variance(intensity: F64, normals_cam: F64,
         or a uniform part).
     """
     m = len(intensity)
-    basis = np.empty((m, 9))
+    patterned = len(albedo) == m
+    columns = 10 if patterned else 9
+    basis = np.empty((m, columns))
     for i in range(m):
         x, y, zz = normals_cam[i, 0], normals_cam[i, 1], normals_cam[i, 2]
-        basis[i, 0] = 1.0
-        basis[i, 1] = x
-        basis[i, 2] = y
-        basis[i, 3] = zz
-        basis[i, 4] = x * y
-        basis[i, 5] = x * zz
-        basis[i, 6] = y * zz
-        basis[i, 7] = x * x - y * y
-        basis[i, 8] = 3.0 * zz * zz - 1.0
+        a = albedo[i] if patterned else 1.0
+        basis[i, 0] = a
+        basis[i, 1] = a * x
+        basis[i, 2] = a * y
+        basis[i, 3] = a * zz
+        basis[i, 4] = a * x * y
+        basis[i, 5] = a * x * zz
+        basis[i, 6] = a * y * zz
+        basis[i, 7] = a * (x * x - y * y)
+        basis[i, 8] = a * (3.0 * zz * zz - 1.0)
+        if patterned:
+            basis[i, 9] = 1.0
     weights = np.ones(m)
     residual = intensity - intensity.mean()
     # The scale's floor is far below any image noise: it only keeps an exact
@@ -216,5 +231,6 @@ def warm_up() -> None:
     visible_samples(rng.normal(size=(60, 3)), normals, np.eye(3), np.array([0.0, 0.0, 500.0]),
                     np.array([500.0, 500.0, 320.0, 240.0]), np.zeros(8), False, 640, 480, 1.0,
                     0.3)
-    explained_variance(rng.random(60), normals, 4)
+    explained_variance(rng.random(60), normals, np.empty(0), 4)
+    explained_variance(rng.random(60), normals, rng.random(60), 4)
     points_mask(rng.random((5, 2)), 0, 0, 2, 3)

@@ -220,6 +220,41 @@ def test_learning_keeps_the_colours_of_a_coloured_mesh_only(orange_model, bracke
         model_from_arrays(arrays, meta)
 
 
+def test_learning_keeps_the_vertex_colours_of_a_coloured_mesh_only(orange_model, bracket_model):
+    assert bracket_model.mesh_vertex_colours is None
+    assert "mesh_vertex_colours" not in model_to_arrays(bracket_model)[0]
+    colours = orange_model.mesh_vertex_colours
+    assert colours is not None and orange_model.mesh_vertices_mm is not None
+    assert colours.shape == (len(orange_model.mesh_vertices_mm), 3)
+    assert np.all(colours == ORANGE)
+    arrays, meta = model_to_arrays(orange_model)
+    back = model_from_arrays(arrays, meta)
+    assert back.mesh_vertex_colours is not None
+    assert np.array_equal(back.mesh_vertex_colours, colours)
+    for broken in (colours[:-1], colours.astype(np.float32), colours[:, :2]):
+        arrays["mesh_vertex_colours"] = broken
+        with pytest.raises(ModelFormatError):
+            model_from_arrays(arrays, meta)
+
+
+def test_only_a_patterned_parts_surface_samples_carry_its_albedo(orange_model):
+    """The localizer's surface samples of a part of one colour (the orange
+    bracket) carry no albedo, so its shading cue is the plain one; those of
+    the same mesh painted half dark do."""
+    from viewloc_core.localize import _surface
+
+    surface = _surface(orange_model)
+    assert surface is not None and surface[0].albedo is None
+    vertices = orange_model.mesh_vertices_mm
+    colours = np.array(orange_model.mesh_vertex_colours)
+    colours[vertices[:, 0] < np.median(vertices[:, 0])] = (40, 40, 40)
+    painted = _surface(replace(orange_model, mesh_vertex_colours=colours))
+    assert painted is not None and painted[0].albedo is not None
+    x = painted[0].points_mm[:, 0] + orange_model.origin_offset_mm[0]
+    dark = painted[0].albedo < 0.3
+    assert np.mean(x[dark]) < np.mean(x[~dark])
+
+
 def test_the_part_is_told_from_a_look_alike_of_another_colour(orange_model, renderer):
     """An orange and a blue bracket of the same shape: the orange part's
     model reports the orange one, and its pose. Without its colours the

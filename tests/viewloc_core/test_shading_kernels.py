@@ -90,7 +90,7 @@ def test_visible_samples_and_agreement_are_the_array_forms(seed, part, lens, x, 
     # the depth-buffer cells a pixel wide.
     samples, camera = SAMPLES[part], CAMERAS[lens]
     pose = Pose(Rotation.random(random_state=seed).as_matrix(), np.array([x, y, z]))
-    uv, normals = visible_samples(samples, camera, pose)
+    uv, normals, _ = visible_samples(samples, camera, pose)
     uv_a, normals_a = _array_visible(samples, camera, pose)
     assert len(uv) == len(uv_a)
     if len(uv) == 0:
