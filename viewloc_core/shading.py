@@ -69,7 +69,7 @@ _LUMINANCE = np.array([0.299, 0.587, 0.114])
 #: is of one colour: its samples carry no albedo.
 MIN_ALBEDO_SPREAD = 0.05
 
-#: The kernel's sign for a part of one colour.
+#: What the fit's kernel is given for a part of one colour: no albedo.
 _NO_ALBEDO = np.empty(0)
 
 
@@ -161,7 +161,9 @@ def surface_samples(vertices_mm: NDArray[np.floating], faces: NDArray[np.integer
         luminance = np.asarray(vertex_colours, np.float64)[:, :3] @ _LUMINANCE / 255.0
         albedo = np.einsum("nk,nk->n", bary, luminance[np.asarray(faces)[face_index]])
         if float(np.ptp(albedo)) < MIN_ALBEDO_SPREAD:
-            albedo = None  # one colour: no pattern, and the plain fit's basis
+            # One colour: the plain fit (its offset column would repeat the
+            # albedo-scaled constant one).
+            albedo = None
     area = float(mesh.area)
     return SurfaceSamples(
         points_mm=np.asarray(points, np.float64),

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import cv2
 import numpy as np
 import pytest
@@ -41,7 +43,7 @@ def _array_visible(samples: SurfaceSamples, camera: Camera, pose: Pose):
               & (uv[:, 1] >= 0) & (uv[:, 1] <= camera.height - 1))
     idx, uv = idx[inside], uv[inside]
     if len(idx) == 0:
-        return uv, np.zeros((0, 3))
+        return uv, np.zeros((0, 3)), idx
     z = pts_cam[idx, 2]
     cell_px = max(1.0, 3.0 * samples.spacing_mm * camera.fx / float(np.median(z)))
     cells = (np.floor(uv[:, 1] / cell_px) * (camera.width / cell_px + 1)
@@ -51,15 +53,18 @@ def _array_visible(samples: SurfaceSamples, camera: Camera, pose: Pose):
     starts = np.flatnonzero(np.r_[True, sorted_cells[1:] != sorted_cells[:-1]])
     nearest = np.repeat(z[order][starts], np.diff(np.r_[starts, len(order)]))
     seen = order[z[order] <= nearest + 2.0 * samples.spacing_mm]
-    return uv[seen], normals_cam[idx[seen]]
+    return uv[seen], normals_cam[idx[seen]], idx[seen]
 
 
-def _array_agreement(image, uv, normals):
-    """The array formulation of shading_agreement's robust fit."""
+def _array_agreement(image, uv, normals, albedo=None):
+    """The array formulation of shading_agreement's robust fit (with
+    ``albedo``, (M,): of albedo x SH(normal) plus an offset)."""
     intensity = intensity_at(image, uv)
     x, y, z = normals[:, 0], normals[:, 1], normals[:, 2]
     basis = np.stack([np.ones_like(x), x, y, z, x * y, x * z, y * z, x * x - y * y,
                       3.0 * z * z - 1.0], axis=1)
+    if albedo is not None:
+        basis = np.concatenate([basis * albedo[:, None], np.ones((len(x), 1))], axis=1)
     weights = np.ones(len(intensity))
     residual = intensity - intensity.mean()
     min_scale = 1e-9 * (1.0 + float(np.abs(intensity).max()))
@@ -90,9 +95,11 @@ def test_visible_samples_and_agreement_are_the_array_forms(seed, part, lens, x, 
     # the depth-buffer cells a pixel wide.
     samples, camera = SAMPLES[part], CAMERAS[lens]
     pose = Pose(Rotation.random(random_state=seed).as_matrix(), np.array([x, y, z]))
-    uv, normals, _ = visible_samples(samples, camera, pose)
-    uv_a, normals_a = _array_visible(samples, camera, pose)
+    uv, normals, index = visible_samples(samples, camera, pose)
+    visible_a = _array_visible(samples, camera, pose)
+    uv_a, normals_a, index_a = visible_a
     assert len(uv) == len(uv_a)
+    assert np.all(np.diff(index) > 0) and np.array_equal(index, np.sort(index_a))
     if len(uv) == 0:
         return
     uv, normals = _rows(uv, normals)
@@ -102,6 +109,15 @@ def test_visible_samples_and_agreement_are_the_array_forms(seed, part, lens, x, 
     image = cv2.GaussianBlur((rng.random((480, 640, 3)) * 255).astype(np.uint8), (0, 0), 4.0)
     expected = _array_agreement(image, uv_a, normals_a) if len(uv) >= 40 else None
     got = shading_agreement(image, camera, pose, samples)
+    assert (got is None) == (expected is None)
+    if got is not None:
+        assert got == pytest.approx(expected, abs=1e-9)
+    # A patterned part: each sample's albedo scales its harmonics.
+    albedo = rng.uniform(0.1, 0.9, len(samples.points_mm))
+    patterned = replace(samples, albedo=albedo)
+    expected = (_array_agreement(image, visible_a[0], visible_a[1], albedo[index_a])
+                if len(uv) >= 40 else None)
+    got = shading_agreement(image, camera, pose, patterned)
     assert (got is None) == (expected is None)
     if got is not None:
         assert got == pytest.approx(expected, abs=1e-9)
