@@ -929,11 +929,17 @@ class _Shading:
     colour: _ColourScene | None = None
     interior: _Interior | None = None
 
+    @property
+    def shading_weight(self) -> float:
+        """Weight of the shading agreement in :meth:`rank`: PATTERNED_SHADING_WEIGHT
+        for a part with a pattern of its own colours, SHADING_WEIGHT otherwise."""
+        return SHADING_WEIGHT if self.samples.albedo is None else PATTERNED_SHADING_WEIGHT
+
     def rank(self, camera: Camera, result: RefinementResult,
              at_least: float = -math.inf) -> float:
         """Ranking key of fits of different views at one location: the share
         of the contour confirmed, plus the shading agreement weighted by
-        :data:`SHADING_WEIGHT` (0 when the part shows too little of itself)
+        :attr:`shading_weight` (0 when the part shows too little of itself)
         and the colour agreement weighted by :data:`COLOUR_WEIGHT` (a view
         fitted beside the part covers less of its colours), less the share
         of the edges inside it that its contour leaves unexplained, weighted
@@ -950,8 +956,7 @@ class _Shading:
         alone).
         """
         inliers = _fit_rank(result)
-        shading_weight = (SHADING_WEIGHT if self.samples.albedo is None
-                          else PATTERNED_SHADING_WEIGHT)
+        shading_weight = self.shading_weight
         if inliers + shading_weight + (0.0 if self.colour is None else COLOUR_WEIGHT) \
                 + _RANK_BOUND_SLACK < at_least:
             return -math.inf
@@ -1318,9 +1323,9 @@ def _tilted_refit(edges: EdgePyramid, camera: Camera, contour: ContourModel, sym
     the part's centre, reach the neighbouring basins; the one that
     confirms the most of its contour gets the full fit when it ends
     elsewhere, and that fit replaces ``result`` under the bars of
-    TILT_MIN_MOVE_DEG and TILT_MIN_GAIN. From the truth turned 5 / 10 / 15 / 20° (the figures of
-    TILT_DEG) the fits ended within 3° in 0.94 / 0.87 / 0.71 / 0.61 of the
-    cases instead of 0.90 / 0.68 / 0.43 / 0.31.
+    TILT_MIN_MOVE_DEG and TILT_MIN_GAIN. From the truth turned 5 / 10 /
+    15 / 20° (the figures of TILT_DEG) the fits ended within 3° in 0.94 /
+    0.87 / 0.71 / 0.61 of the cases instead of 0.90 / 0.68 / 0.43 / 0.31.
 
     Parameters
     ----------
