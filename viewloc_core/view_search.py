@@ -16,6 +16,11 @@ Scoring is the log-likelihood ratio object vs. clutter of
 Each sample is weighted by the edge length it stands for in the image, so a
 view that explains the whole outline beats one that explains a part of it
 (one plate of a barbell) equally well.
+
+A part's two sides show mirrored outlines, which the edges can tell apart
+worse than the fitted surface's shading and colour can: on request the
+search also returns the best view of the other side of the part, for the
+pose stage to fit and compare (``search_views(other_side=...)``).
 """
 
 from __future__ import annotations
@@ -40,6 +45,7 @@ from viewloc_core.features import (
 )
 from viewloc_core.model import ObjectModel, cached_per_model
 from viewloc_core.sample_classes import sample_codes, training_view_sample_classes
+from viewloc_core.view_sphere import direction_from_angles
 
 F64 = NDArray[np.float64]
 
@@ -73,6 +79,17 @@ FITTED_CANDIDATES = 12
 #: Search radii (px) of the least-squares fit's nearest-edge matching.
 FIT_RADII_PX = (4.0, 2.5, 1.5)
 
+#: Views whose directions lie at least this far apart see a part from its
+#: two sides: a half turn about any axis in the image plane takes the line
+#: of sight to its opposite, and the outline to its mirror image, which on
+#: a nearly mirror-symmetric part is the outline turned.
+OTHER_SIDE_MIN_DEG = 110.0
+
+#: With ``other_side`` (:func:`search_views`), the other side's best views
+#: in the screen that get the full grid of their own. LM-O, 4 and 2: the
+#: same AR (objects 1, 5, 6, 8, learning seed 0).
+OTHER_SIDE_SCREENED = 2
+
 
 @dataclass(frozen=True, slots=True, eq=False)
 class ViewTemplates:
@@ -102,6 +119,8 @@ class ViewTemplates:
     coarse_bins8 : (T, C) uint8
     coarse_valid : (T, C) bool
         The same for the coarse subsets (what every screening reads).
+    directions : (T, 3) float64
+        Unit direction from the part to each view's camera, part frame.
     """
 
     pts: F64
@@ -117,6 +136,7 @@ class ViewTemplates:
     coarse_py: NDArray[np.float32]
     coarse_bins8: NDArray[np.uint8]
     coarse_valid: NDArray[np.bool_]
+    directions: F64
 
     def __len__(self) -> int:
         return int(self.pts.shape[0])
@@ -154,6 +174,9 @@ def build_templates(model: ObjectModel) -> ViewTemplates:
     return ViewTemplates(
         pts, theta, bins, valid, coarse, length, px, py, bins8,
         px[rows, coarse], py[rows, coarse], bins8[rows, coarse], valid[rows, coarse],
+        np.array([direction_from_angles(a, p) for a, p in zip(tr.azimuth_deg, tr.polar_deg,
+                                                               strict=True)],
+                 np.float64).reshape(n_views, 3),
     )
 
 
@@ -359,6 +382,21 @@ def _best_distinct(views: NDArray[np.int64], llr: F64, count: int) -> NDArray[np
     return np.asarray(entries[np.argsort(-llr[entries], kind="stable")[:count]], np.int64)
 
 
+def _other_side_best(
+    templates: ViewTemplates, views: NDArray[np.int64], llr: F64, of_view: int, count: int,
+) -> NDArray[np.int64]:
+    """The ``count`` best distinct views among ``views`` (scored ``llr``)
+    that see the part from the other side than ``of_view`` (at least
+    :data:`OTHER_SIDE_MIN_DEG` away); best first."""
+    cos = templates.directions[views] @ templates.directions[of_view]
+    other = cos <= np.cos(np.radians(OTHER_SIDE_MIN_DEG))
+    entries = np.flatnonzero(other)
+    if not len(entries):
+        return np.zeros(0, np.int64)
+    return np.asarray(views[entries[_best_distinct(views[entries], llr[entries], count)]],
+                      np.int64)
+
+
 def _shifted(seeds: F64, offsets_px: F64) -> F64:
     """Every seed moved by every image offset: (K * O, 4)."""
     moved = seeds[:, None, :].repeat(len(offsets_px), axis=1)
@@ -369,7 +407,7 @@ def _shifted(seeds: F64, offsets_px: F64) -> F64:
 def search_views(
     feats: ImageFeatures, templates: ViewTemplates, seeds: F64, chance: ChanceRates,
     max_candidates: int = 3, offsets_px: F64 | None = None, kept_seeds: int | None = None,
-    screen_angles_deg: tuple[float, ...] = SCREEN_ANGLES_DEG,
+    screen_angles_deg: tuple[float, ...] = SCREEN_ANGLES_DEG, other_side: int = 0,
 ) -> list[ViewCandidate]:
     """The training views that explain an image location best.
 
@@ -393,6 +431,12 @@ def search_views(
         highest go on to the full grid; all of them when None.
     screen_angles_deg : tuple of float
         Angle offsets (degrees) at which every view is screened at each seed.
+    other_side : int
+        After the ``max_candidates`` best, up to this many more: the best
+        candidates among the views that see the part from the other side
+        than the first's (:data:`OTHER_SIDE_MIN_DEG`), however they rank.
+        Their views go through the full grid and the fit on their own, so
+        they leave the other candidates as they were.
 
     Returns
     -------
@@ -415,11 +459,31 @@ def search_views(
         per_seed = llr1.reshape(len(seeds), -1).max(axis=1)
         seeds = seeds[np.sort(np.argsort(-per_seed)[:kept_seeds])]
     stage2 = _grid_sims(seeds, np.radians(COARSE_ANGLES_DEG), COARSE_SCALES)
-    views = np.tile(views1[best_views], len(stage2))
-    sims = np.repeat(stage2, len(best_views), axis=0)
+    candidates = _grid_and_fit(feats, templates, views1[best_views], stage2, chance,
+                               FITTED_CANDIDATES)[:max_candidates]
+    if other_side and candidates:
+        other = _other_side_best(templates, views1, llr1, candidates[0].view,
+                                 OTHER_SIDE_SCREENED)
+        other = other[~np.isin(other, [c.view for c in candidates])]
+        candidates += _grid_and_fit(feats, templates, other, stage2, chance,
+                                    other_side)[:other_side]
+    return candidates
+
+
+def _grid_and_fit(
+    feats: ImageFeatures, templates: ViewTemplates, view_ids: NDArray[np.int64], grid: F64,
+    chance: ChanceRates, fitted_count: int,
+) -> list[ViewCandidate]:
+    """Stage 2 of :func:`search_views`: ``view_ids`` on every similarity of
+    ``grid``, the best ``fitted_count`` distinct views fitted by least
+    squares; best first."""
+    if not len(view_ids):
+        return []
+    views = np.tile(view_ids, len(grid))
+    sims = np.repeat(grid, len(view_ids), axis=0)
     llr = _score_coarse(feats, templates, views, sims, chance)
     # The best few distinct views go on to the least-squares fit.
-    pick = _best_distinct(views, llr, FITTED_CANDIDATES)
+    pick = _best_distinct(views, llr, fitted_count)
     fit_views = views[pick]
     fitted = extend_many(feats, sims[pick], templates.pts[fit_views],
                           templates.theta[fit_views], templates.valid[fit_views],
@@ -431,6 +495,6 @@ def search_views(
     final_sims = np.where(better[:, None], fitted, sims[pick])
     llr = np.where(better, after[0], before[0])
     frac = np.where(better, after[1], before[1])
-    best = np.argsort(-llr)[:max_candidates]
+    best = np.argsort(-llr)
     return [ViewCandidate(int(fit_views[i]), final_sims[i], float(llr[i]), float(frac[i]))
             for i in best]

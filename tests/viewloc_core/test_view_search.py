@@ -77,6 +77,37 @@ def test_evidence_is_higher_on_the_object_than_on_clutter(renderer, bracket_mesh
     assert evid_on[0] > 0.5 > evid_off.max()
 
 
+def test_each_templates_direction_is_where_its_camera_looks_from(bracket_model):
+    templates = view_templates(bracket_model)
+    # The camera looks along its +z: from the part, it lies along -z.
+    towards_camera = np.einsum("tji,j->ti", bracket_model.training.R_m2c, [0.0, 0.0, -1.0])
+    np.testing.assert_allclose(templates.directions, towards_camera, atol=1e-9)
+    np.testing.assert_allclose(np.linalg.norm(templates.directions, axis=1), 1.0, atol=1e-12)
+
+
+def test_the_other_sides_candidates_come_after_the_best_and_leave_them_unchanged(
+        renderer, bracket_mesh, bracket_model):
+    model = bracket_model
+    templates = view_templates(model)
+    image, sim_true, _ = _scene(renderer, bracket_mesh, model, 17, -100.0, clutter=3)
+    feats = extract_features(image)
+    chance = chance_rates(feats)
+    start = sim_true + np.array([2.0, -2.0, np.radians(6.0), 0.0])
+    plain = search_views(feats, templates, start[None], chance, 4)
+    both = search_views(feats, templates, start[None], chance, 4, other_side=1)
+    assert len(plain) == 4 and len(both) == 5
+    for a, b in zip(plain, both[:4], strict=True):
+        assert (a.view, a.log_likelihood_ratio) == (b.view, b.log_likelihood_ratio)
+        np.testing.assert_array_equal(a.sim, b.sim)
+    other = both[4]
+    assert other.view not in [c.view for c in plain]
+    cos = float(templates.directions[other.view] @ templates.directions[both[0].view])
+    assert np.degrees(np.arccos(cos)) >= view_search.OTHER_SIDE_MIN_DEG
+    # Seen from the other side, the outline is the first's mirror image: the
+    # search fits it to the image's outline as it can, well below the first.
+    assert other.log_likelihood_ratio < both[0].log_likelihood_ratio
+
+
 def test_chance_rates_follow_the_image_clutter():
     rng = np.random.default_rng(1)
     blank = np.full((200, 300, 3), 100, np.uint8)
