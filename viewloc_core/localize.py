@@ -389,13 +389,17 @@ FIGURE_GROUND_FULL = 0.2
 OTHER_VIEW_EVIDENCE_SHARE = 0.6
 
 #: Candidates from the other side of the part each location's view search
-#: adds after its best (``search_views(other_side=...)``), tried as rival
-#: starts whatever their evidence: on real photos the contour can prefer
+#: adds after its best (``search_views(other_side=...)``) for a part with
+#: colours of its own whose surface is known (:func:`_compares_sides`).
+#: Every candidate that sees the other side of the fit's view is tried as a
+#: rival start whatever its evidence: on real photos the contour can prefer
 #: one side throughout the search while the fitted shading and colour tell
-#: the sides apart. LM-O ape at the right place and the wrong side (36
-#: photos): the location's candidates lay 100-180° from the truth in most,
-#: while a fit from the truth outranked the chosen one in 27 (and outranked
-#: the truth turned over and fitted in 21 of 21 checked).
+#: the sides apart.
+#: LM-O ape at the right place and the wrong side (36 photos): the
+#: location's candidates lay 100-180° from the truth in most, while a fit
+#: started from the truth outranked the chosen one in 27; and in 21 of 21
+#: photos checked, the truth fitted outranked the truth turned over and
+#: fitted.
 OTHER_SIDE_CANDIDATES = 1
 
 #: Candidates whose start is within this rotation (deg, over the part's
@@ -887,6 +891,15 @@ def _view_candidate_count(surface: tuple[SurfaceSamples, NearSymmetries] | None)
     return VIEW_CANDIDATES
 
 
+def _compares_sides(model: ObjectModel) -> bool:
+    """Whether fits of the part compare its sides beyond the rival views'
+    evidence (OTHER_SIDE_CANDIDATES): a part with colours of its own. Parts
+    learned without colours get the same answers with and without (hard,
+    novel, paper and hard-photos bench sets, learning seed 0: identical
+    records) and would pay for the extra search and fits."""
+    return model.colour_histogram is not None
+
+
 def _fit_rank(result: RefinementResult) -> float:
     """Ranking key of a refinement: share of the contour that found its edge."""
     return float(result.inlier_fraction)
@@ -1073,14 +1086,15 @@ class _ColourScene:
 def _colour_locations(
     model: ObjectModel, colour: _ColourScene, feats: ImageFeatures, templates: ViewTemplates,
     chance: ChanceRates, config: AlignConfig, taken: list[_Located],
-    within: NDArray[np.float64] | None = None,
+    within: NDArray[np.float64] | None = None, other_side: int = 0,
 ) -> list[_Located]:
     """The view search at the locations the part's colour proposes, as
     locations of their own (an alignment match made of the best view).
 
     A proposal whose best view lands within a quarter of the part's image
     diameter of a location in ``taken`` (or of an earlier proposal's) adds
-    nothing and is dropped. ``within``: see :meth:`_ColourScene.seeds`.
+    nothing and is dropped. ``within``: see :meth:`_ColourScene.seeds`;
+    ``other_side``: see :func:`search_views`.
     """
     tr = model.training
     out: list[_Located] = []
@@ -1090,7 +1104,7 @@ def _colour_locations(
                                      np.float64)
         candidates = search_views(feats, templates, seeds, chance, VIEW_CANDIDATES,
                                   offsets, COLOUR_KEPT_SEEDS, COLOUR_SCREEN_ANGLES_DEG,
-                                  OTHER_SIDE_CANDIDATES)
+                                  other_side)
         if not candidates:
             continue
         best = candidates[0]
@@ -1152,9 +1166,11 @@ def _other_sides(
     # whatever theirs (OTHER_SIDE_CANDIDATES).
     directions = view_templates(model).directions
     other_side_cos = math.cos(math.radians(OTHER_SIDE_MIN_DEG))
+    sides = _compares_sides(model)
     candidates = [c for c in loc.candidates[1:]
                   if c.log_likelihood_ratio >= OTHER_VIEW_EVIDENCE_SHARE * loc.evidence
-                  or float(directions[c.view] @ directions[t_view]) <= other_side_cos]
+                  or (sides and float(directions[c.view] @ directions[t_view])
+                      <= other_side_cos)]
     # The fit whose twins, reversals and outline turns the round tries
     # (None: the chosen).
     turned: RefinementResult | None = None
@@ -1729,12 +1745,14 @@ def localize_in_scene(model: ObjectModel, scene: Scene,
     located = []
     surface = _surface(model) if contour is not None else None
     n_candidates = _view_candidate_count(surface)
+    # Only fits that read the part's surface compare its sides (_other_sides).
+    other_side = (OTHER_SIDE_CANDIDATES if surface is not None and _compares_sides(model)
+                  else 0)
     for match in matches:
         seeds = np.array([best_member(model, m.model_view, m.sim, feats)[1]
                           for m in (match, *match.alternatives)])
         located.append(_Located(match, search_views(feats, templates, seeds, chance,
-                                                    n_candidates,
-                                                    other_side=OTHER_SIDE_CANDIDATES)))
+                                                    n_candidates, other_side=other_side)))
     located = [loc for loc in located if loc.candidates
                and _in_region(loc, factor, options.roi)]
     located.sort(key=lambda loc: -loc.evidence)
@@ -1747,7 +1765,7 @@ def localize_in_scene(model: ObjectModel, scene: Scene,
     colour_located = ([] if colour is None else
                       [loc for loc in _colour_locations(
                           model, colour, feats, templates, chance, AlignConfig(),
-                          located[: options.max_detections], within)
+                          located[: options.max_detections], within, other_side)
                        if _in_region(loc, factor, options.roi)])
     t4 = time.perf_counter()
     timing["views"] = (t4 - t3) * 1e3
