@@ -45,7 +45,6 @@ from viewloc_core.features import (
 )
 from viewloc_core.model import ObjectModel, cached_per_model
 from viewloc_core.sample_classes import sample_codes, training_view_sample_classes
-from viewloc_core.view_sphere import direction_from_angles
 
 F64 = NDArray[np.float64]
 
@@ -175,9 +174,9 @@ def build_templates(model: ObjectModel) -> ViewTemplates:
     return ViewTemplates(
         pts, theta, bins, valid, coarse, length, px, py, bins8,
         px[rows, coarse], py[rows, coarse], bins8[rows, coarse], valid[rows, coarse],
-        np.array([direction_from_angles(a, p) for a, p in zip(tr.azimuth_deg, tr.polar_deg,
-                                                               strict=True)],
-                 np.float64).reshape(n_views, 3),
+        # The camera looks along its +z: from the part it lies along -z,
+        # the third row of each view's rotation negated.
+        -np.asarray(tr.R_m2c, np.float64).reshape(n_views, 3, 3)[:, 2, :],
     )
 
 
