@@ -77,9 +77,17 @@ UNSEEN_PROBES = 10_000
 SEARCH_HALF_SIDE_SHARE = 0.75
 
 #: Faces the hull is simplified to (:mod:`viewloc_core.mesh_simplify`):
-#: marching cubes on the fine grid gives about 100,000, and the contour
-#: model renders the hull from 642 directions.
-HULL_MAX_FACES = 20_000
+#: marching cubes on the fine grid gives about 100,000. The contour model
+#: renders the hull from the 642 directions of ``LearningConfig.contour_level``
+#: only while views x faces stay within ``learn.CONTOUR_FACE_RENDERS`` (10
+#: million), so at most 15,000: at 20,000 the hull's contour came from 162
+#: directions (16° apart), whose outlines project inside the true one where
+#: the surface is curved. Hard bench set, learned from 162 photos, 20,000 ->
+#: 15,000 faces, learning seeds 0 / 1: 6D recognition 0.68 / 0.7375 -> 0.72
+#: / 0.775, AR_MSSD 0.787 / 0.831 -> 0.799 / 0.846, AR_MSPD 0.849 / 0.901
+#: -> 0.849 / 0.895; the free-form part's depth error median 5.1 / 5.1 ->
+#: 2.7 / 2.8 mm (the bracket's 7.8 / 7.8 -> 7.0 / 8.0); learning 7 -> 10-11 s.
+HULL_MAX_FACES = 15_000
 
 #: Smoothing (voxels) of the carved occupancy before the surface is
 #: extracted: marching cubes on a 0/1 grid leaves a staircase of 45° facets
