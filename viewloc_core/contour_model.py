@@ -292,6 +292,7 @@ def build_contour_model(
     crease_deg: float = 35.0,
     sample_step_px: float = 1.0,
     rng: np.random.Generator | int | None = 0,
+    visibility_mesh: trimesh.Trimesh | None = None,
 ) -> ContourModel:
     """Contour points of ``mesh`` seen from each direction (see module notes).
 
@@ -321,6 +322,11 @@ def build_contour_model(
         Spacing of samples along edges before thinning, training pixels.
     rng : numpy Generator, int or None
         Seed of the thinning order; fixed by default so builds repeat.
+    visibility_mesh : trimesh.Trimesh, optional
+        The mesh each view renders to tell which contour points are hidden
+        and where the silhouette's normal points (``mesh`` when None): a
+        simplification of a dense mesh costs a fraction of its renders,
+        while the points themselves lie on ``mesh``'s own edges.
 
     Returns
     -------
@@ -341,9 +347,9 @@ def build_contour_model(
     try:
         from viewloc_core.render import prepare
 
-        source: Any = prepare(mesh)
+        source: Any = prepare(mesh if visibility_mesh is None else visibility_mesh)
     except ImportError:
-        source = mesh
+        source = mesh if visibility_mesh is None else visibility_mesh
 
     verts = np.asarray(mesh.vertices, dtype=np.float64)
     face_n = np.asarray(mesh.face_normals, dtype=np.float64)

@@ -70,8 +70,8 @@ BITS_TRANSFORM = 48.0
 
 #: Depth renders (views × mesh faces) the contour views may cost in all:
 #: about 12 s with Mesa's software renderer on the 2-core machine (about 1.2
-#: µs per face and view). The LM-O can (45,666 faces) took 77 s to learn with
-#: 642 contour views, about 44 s with 162.
+#: µs per face and view). A denser mesh's contour views render its
+#: simplification to this budget (:func:`contour_render_mesh`).
 CONTOUR_FACE_RENDERS = 10_000_000
 
 #: A training view is rendered over white instead of black when a quarter of
@@ -94,30 +94,33 @@ BLACK_RGB = (0, 0, 0)
 WHITE_RGB = (255, 255, 255)
 
 
-def contour_view_level(requested: int, n_faces: int) -> int:
-    """View-sphere level of the contour views for a mesh of ``n_faces`` faces.
+def contour_render_mesh(mesh: trimesh.Trimesh, n_views: int) -> trimesh.Trimesh:
+    """The mesh the contour model's ``n_views`` views render to find which of
+    ``mesh``'s contour points they see: ``mesh`` itself, or where views ×
+    faces would exceed :data:`CONTOUR_FACE_RENDERS` its quadric
+    simplification to that budget (:mod:`viewloc_core.mesh_simplify`).
 
-    The requested level, or the finest coarser one whose views × faces stay
-    within :data:`CONTOUR_FACE_RENDERS`, but not below level 2 (or the
-    requested level, if lower).
+    The points are taken from ``mesh``'s own edges either way; only the
+    visibility test and the silhouette's normals read the render. Before,
+    a dense mesh got fewer views instead (162 rather than 642 for more than
+    15,576 faces), and from 16° apart a curved surface's outline projects
+    inside the true one: LM-O, the can (45,666 faces), cat (31,468) and
+    driller (25,306) had 162.
 
     Parameters
     ----------
-    requested : int
-        :attr:`LearningConfig.contour_level`.
-    n_faces : int
-        Faces of the mesh.
+    mesh : trimesh.Trimesh
+        The part, mm.
+    n_views : int
+        Contour views (at least 1).
 
     Returns
     -------
-    int
+    trimesh.Trimesh
     """
-    level = requested
-    floor = min(requested, 2)
-    # Level L of the subdivided icosahedron has 10 * 4**L + 2 vertices.
-    while level > floor and (10 * 4**level + 2) * n_faces > CONTOUR_FACE_RENDERS:
-        level -= 1
-    return level
+    from viewloc_core.mesh_simplify import simplified
+
+    return simplified(mesh, max(4, CONTOUR_FACE_RENDERS // max(1, n_views)))
 
 
 @dataclass(frozen=True, slots=True)
@@ -142,8 +145,8 @@ class LearningConfig:
         part's fits from the true pose ended a median 1.3 mm (up to 23 mm at
         950 mm) too near on the hard bench set, at level 3 0.3 mm. Each level
         costs four times the depth renders (level 3: about 7 s for a part of
-        5,000 faces); a mesh too dense for :data:`CONTOUR_FACE_RENDERS` gets
-        a coarser level, down to 2 (:func:`contour_view_level`).
+        5,000 faces); a mesh too dense for :data:`CONTOUR_FACE_RENDERS`
+        renders its simplification (:func:`contour_render_mesh`).
     object_px : float
         Object diameter in training-image pixels.
     edge_samples : int
@@ -322,11 +325,11 @@ class _ViewSample:
     edge_theta: NDArray[np.float64]
 
 
-def _contour_directions(config: LearningConfig, n_faces: int) -> NDArray[np.float64]:
+def _contour_directions(config: LearningConfig) -> NDArray[np.float64]:
     """(V, 3) unit directions (object origin to camera) of the contour
-    model's views of a mesh of ``n_faces`` faces (:func:`contour_view_level`)."""
-    level = contour_view_level(config.contour_level, n_faces)
-    return np.array([v.direction for v in view_directions(level, config.max_polar_deg)])
+    model's views (``config.contour_level``)."""
+    return np.array([v.direction for v in view_directions(config.contour_level,
+                                                          config.max_polar_deg)])
 
 
 def _canonical_camera(config: LearningConfig, diameter_mm: float) -> tuple[float, float, int]:
@@ -779,8 +782,10 @@ def learn_from_mesh(
         # 3D contour points per direction of a finer sphere than training
         # needs (see contour_level), in the centred frame the poses are
         # computed in, for the pose refinement (§5.2).
-        contour = build_contour_model(centred, _contour_directions(config, len(centred.faces)),
-                                      renderer, d0, f, (size, size))
+        contour_directions = _contour_directions(config)
+        contour = build_contour_model(
+            centred, contour_directions, renderer, d0, f, (size, size),
+            visibility_mesh=contour_render_mesh(centred, len(contour_directions)))
         # A part whose own views do not show its creases (a dark part) is
         # fitted and scored by its outline alone (crease_visibility).
         if not creases_show(*confirmed_shares(contour, views_seen, rotations, camera, d0)):
@@ -918,8 +923,11 @@ def learn_from_images(
         # The hull's outline is the photos' own; its creases are where the
         # cones meet, not the part's, so only the outline is fitted.
         with Renderer() as renderer:
-            contour = build_contour_model(hull, _contour_directions(config, len(hull.faces)),
-                                          renderer, d0, f, (size, size)).outline_only().to_arrays()
+            directions = _contour_directions(config)
+            contour = build_contour_model(
+                hull, directions, renderer, d0, f, (size, size),
+                visibility_mesh=contour_render_mesh(hull, len(directions)),
+            ).outline_only().to_arrays()
     if progress is not None:
         progress("finishing", 1.0)
     model = _finish(clusterer, rotations, samples, angles, "images", diameter_mm, d0, f, size,

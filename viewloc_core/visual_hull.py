@@ -77,16 +77,16 @@ UNSEEN_PROBES = 10_000
 SEARCH_HALF_SIDE_SHARE = 0.75
 
 #: Faces the hull is simplified to (:mod:`viewloc_core.mesh_simplify`):
-#: marching cubes on the fine grid gives about 100,000. The contour model
-#: renders the hull from the 642 directions of ``LearningConfig.contour_level``
-#: only while views x faces stay within ``learn.CONTOUR_FACE_RENDERS`` (10
-#: million), so at most 15,000: at 20,000 the hull's contour came from 162
-#: directions (16° apart), whose outlines project inside the true one where
-#: the surface is curved. Hard bench set, learned from 162 photos, 20,000 ->
-#: 15,000 faces, learning seeds 0 / 1: 6D recognition 0.68 / 0.7375 -> 0.72
-#: / 0.775, AR_MSSD 0.787 / 0.831 -> 0.799 / 0.846, AR_MSPD 0.849 / 0.901
-#: -> 0.849 / 0.895; the free-form part's depth error median 5.1 / 5.1 ->
-#: 2.7 / 2.8 mm (the bracket's 7.8 / 7.8 -> 7.0 / 8.0); learning 7 -> 10-11 s.
+#: marching cubes on the fine grid gives about 100,000. At 15,000 the
+#: contour model's 642 views (``LearningConfig.contour_level``) render the
+#: hull itself within ``learn.CONTOUR_FACE_RENDERS``. At 20,000 they used
+#: to fall back to 162 directions (16° apart), whose outlines project inside
+#: the true one where the surface is curved. Hard bench set, learned from 162
+#: photos, 20,000 (162 contour views) -> 15,000 faces, learning seeds 0 / 1:
+#: 6D recognition 0.68 / 0.7375 -> 0.72 / 0.775, AR_MSSD 0.787 / 0.831 ->
+#: 0.799 / 0.846, AR_MSPD 0.849 / 0.901 -> 0.849 / 0.895; the free-form
+#: part's depth error median 5.1 / 5.1 -> 2.7 / 2.8 mm (the bracket's 7.8 /
+#: 7.8 -> 7.0 / 8.0); learning 7 -> 10-11 s.
 HULL_MAX_FACES = 15_000
 
 #: Smoothing (voxels) of the carved occupancy before the surface is

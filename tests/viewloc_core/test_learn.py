@@ -9,7 +9,7 @@ import trimesh
 
 from tests.viewloc_core.conftest import render_scene
 from viewloc_core.camera import Camera
-from viewloc_core.contour_model import KIND_CREASE, ContourModel
+from viewloc_core.contour_model import KIND_CREASE, ContourModel, build_contour_model
 from viewloc_core.errors import Cancelled, InvalidInputError
 from viewloc_core.features import FeatureConfig, extract_features
 from viewloc_core.learn import (
@@ -18,7 +18,7 @@ from viewloc_core.learn import (
     TrainingView,
     _canonical_camera,
     _canonical_map,
-    contour_view_level,
+    contour_render_mesh,
     learn_from_images,
     learn_from_mesh,
     outline_hidden_on_black,
@@ -28,7 +28,6 @@ from viewloc_core.mesh import MAX_FACES, mesh_diameter_mm
 from viewloc_core.model import model_to_arrays
 from viewloc_core.pose import Pose, rotation_angle_deg
 from viewloc_core.view_sphere import view_directions
-from viewloc_core.visual_hull import HULL_MAX_FACES
 
 
 def test_config_from_dict_validates_fields():
@@ -81,19 +80,31 @@ def test_a_dense_mesh_is_learned_from_its_simplification(renderer, bracket_mesh,
     assert rotation_angle_deg(dets[0].pose.R_m2c, pose.R_m2c) < 1.5
 
 
-def test_dense_meshes_get_fewer_contour_views_down_to_level_2():
-    # Level 3 is 642 views, level 2 162: views x faces stay in the budget.
-    assert contour_view_level(3, 5_000) == 3
-    assert 642 * 15_000 <= CONTOUR_FACE_RENDERS < 642 * 16_000
-    assert contour_view_level(3, 16_000) == 2
-    assert contour_view_level(3, 10**7) == 2  # never coarser than training's level 2
-    assert contour_view_level(1, 10**7) == 1  # nor finer than asked
-    assert contour_view_level(4, 1_000) == 4
+def test_a_dense_mesh_s_contour_views_render_its_simplification():
+    light = trimesh.creation.icosphere(subdivisions=3)  # 1,280 faces
+    assert contour_render_mesh(light, 642) is light
+    dense = trimesh.creation.icosphere(subdivisions=6, radius=50.0)  # 81,920 faces
+    rendered = contour_render_mesh(dense, 642)
+    assert len(rendered.faces) * 642 <= 1.01 * CONTOUR_FACE_RENDERS
+    # The same sphere: its vertices stay on the surface.
+    assert np.allclose(np.linalg.norm(rendered.vertices, axis=1), 50.0, atol=0.5)
 
 
-def test_a_visual_hull_is_simplified_enough_for_the_finest_contour_views():
-    level = LearningConfig().contour_level
-    assert contour_view_level(level, HULL_MAX_FACES) == level
+def test_a_simplified_render_finds_the_dense_mesh_s_own_contour(renderer):
+    # Visibility from a render of 2,000 faces, points from the 57,344 of the
+    # dense box: the same contour as with the dense render, on its surface.
+    dense = trimesh.creation.box(extents=(60.0, 40.0, 20.0)).subdivide_to_size(1.0)
+    directions = np.array([v.direction for v in view_directions(1)])
+    args = (renderer, 240.0, 512.0, (160, 160))
+    full = build_contour_model(dense, directions, *args)
+    cheap = build_contour_model(dense, directions, *args,
+                                visibility_mesh=contour_render_mesh(dense, 5_000))
+    assert len(contour_render_mesh(dense, 5_000).faces) <= 2_000 < len(dense.faces)
+    assert np.all(np.abs(cheap.counts - full.counts) <= 0.05 * full.counts + 2)
+    pts = cheap.points_obj[np.arange(cheap.points_obj.shape[1]) < cheap.counts[:, None]]
+    half = np.array([30.0, 20.0, 10.0])
+    assert np.all(np.abs(pts) <= half + 1e-3)
+    assert np.all(np.isclose(np.abs(pts), half, atol=1e-3).any(axis=1))
 
 
 def test_model_views_cluster_training_views(bracket_model):
