@@ -923,10 +923,10 @@ def learn_from_images(
         # The hull's outline is the photos' own; its creases are where the
         # cones meet, not the part's, so only the outline is fitted.
         with Renderer() as renderer:
-            directions = _contour_directions(config)
+            contour_directions = _contour_directions(config)
             contour = build_contour_model(
-                hull, directions, renderer, d0, f, (size, size),
-                visibility_mesh=contour_render_mesh(hull, len(directions)),
+                hull, contour_directions, renderer, d0, f, (size, size),
+                visibility_mesh=contour_render_mesh(hull, len(contour_directions)),
             ).outline_only().to_arrays()
     if progress is not None:
         progress("finishing", 1.0)

@@ -193,8 +193,8 @@ def test_masked_photos_from_all_round_carve_a_hull_the_poses_are_refined_on(
     assert model.contour is not None and model.mesh_faces is not None
     hull_contour = ContourModel.from_arrays(model.contour)
     assert not np.any(hull_contour.kinds == KIND_CREASE)
-    # Its outline from as many directions as a mesh's (not the coarser
-    # sphere a denser mesh would get).
+    # Its outline from all the contour level's directions (642), as a
+    # mesh's.
     assert hull_contour.n_views == 10 * 4 ** config.contour_level + 2
     hull_box = np.array([model.mesh_vertices_mm.min(axis=0), model.mesh_vertices_mm.max(axis=0)])
     bracket_box = np.asarray(centred.bounds)
