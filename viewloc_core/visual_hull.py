@@ -77,16 +77,17 @@ UNSEEN_PROBES = 10_000
 SEARCH_HALF_SIDE_SHARE = 0.75
 
 #: Faces the hull is simplified to (:mod:`viewloc_core.mesh_simplify`):
-#: marching cubes on the fine grid gives about 100,000. At 15,000 the
-#: contour model's 642 views (``LearningConfig.contour_level``) render the
-#: hull itself within ``learn.CONTOUR_FACE_RENDERS``. At 20,000 they used
-#: to fall back to 162 directions (16° apart), whose outlines project inside
-#: the true one where the surface is curved. Hard bench set, learned from 162
-#: photos, 20,000 (162 contour views) -> 15,000 faces, learning seeds 0 / 1:
-#: 6D recognition 0.68 / 0.7375 -> 0.72 / 0.775, AR_MSSD 0.787 / 0.831 ->
-#: 0.799 / 0.846, AR_MSPD 0.849 / 0.901 -> 0.849 / 0.895; the free-form
-#: part's depth error median 5.1 / 5.1 -> 2.7 / 2.8 mm (the bracket's 7.8 /
-#: 7.8 -> 7.0 / 8.0); learning 7 -> 10-11 s.
+#: marching cubes on the fine grid gives about 100,000. Its contour views
+#: (``learn.HULL_CONTOUR_LEVELS_FINER``) tell which of its contour points
+#: they see from a further simplification (``learn.contour_render_mesh``).
+#: At 20,000 faces the contour used to fall back to 162 directions (16°
+#: apart), whose outlines project inside the true one where the surface is
+#: curved; 15,000 gave it 642. Hard bench set, learned from 162 photos,
+#: 20,000 -> 15,000 faces, learning seeds 0 / 1: 6D recognition 0.68 /
+#: 0.7375 -> 0.72 / 0.775, AR_MSSD 0.787 / 0.831 -> 0.799 / 0.846, AR_MSPD
+#: 0.849 / 0.901 -> 0.849 / 0.895; the free-form part's depth error median
+#: 5.1 / 5.1 -> 2.7 / 2.8 mm (the bracket's 7.8 / 7.8 -> 7.0 / 8.0);
+#: learning 7 -> 10-11 s.
 HULL_MAX_FACES = 15_000
 
 #: Smoothing (voxels) of the carved occupancy before the surface is

@@ -14,6 +14,7 @@ from viewloc_core.errors import Cancelled, InvalidInputError
 from viewloc_core.features import FeatureConfig, extract_features
 from viewloc_core.learn import (
     CONTOUR_FACE_RENDERS,
+    HULL_CONTOUR_LEVELS_FINER,
     LearningConfig,
     TrainingView,
     _canonical_camera,
@@ -193,9 +194,10 @@ def test_masked_photos_from_all_round_carve_a_hull_the_poses_are_refined_on(
     assert model.contour is not None and model.mesh_faces is not None
     hull_contour = ContourModel.from_arrays(model.contour)
     assert not np.any(hull_contour.kinds == KIND_CREASE)
-    # Its outline from all the contour level's directions (642), as a
-    # mesh's.
-    assert hull_contour.n_views == 10 * 4 ** config.contour_level + 2
+    # Its outline from the view sphere a level finer than a mesh's (2,562
+    # directions): the hull is smooth all over.
+    level = config.contour_level + HULL_CONTOUR_LEVELS_FINER
+    assert HULL_CONTOUR_LEVELS_FINER >= 1 and hull_contour.n_views == 10 * 4 ** level + 2
     hull_box = np.array([model.mesh_vertices_mm.min(axis=0), model.mesh_vertices_mm.max(axis=0)])
     bracket_box = np.asarray(centred.bounds)
     assert np.all(hull_box[0] <= bracket_box[0] + 1.0)
