@@ -86,6 +86,10 @@ CONTOUR_FACE_RENDERS = 10_000_000
 #: finer was mixed (paper 0.974 -> 0.987, novel 0.869 -> 0.852 AR_MSSD).
 HULL_CONTOUR_LEVELS_FINER = 1
 
+#: The finest contour view-sphere level (2,562 views) a configuration or a
+#: hull's finer level may reach.
+MAX_CONTOUR_LEVEL = 4
+
 #: A training view is rendered over white instead of black when a quarter of
 #: its outline is darker than this (grey level, full scale 1) over black. A
 #: scene's background is unknown, and against almost any of them the outline
@@ -251,7 +255,8 @@ class LearningConfig:
             ("max_level", 0 <= self.max_level <= 4, "must be in 0..4"),
             ("min_level", 0 <= self.min_level <= self.max_level, "must be in 0..max_level"),
             ("max_polar_deg", 30.0 <= self.max_polar_deg <= 180.0, "must be in 30..180"),
-            ("contour_level", 0 <= self.contour_level <= 4, "must be in 0..4"),
+            ("contour_level", 0 <= self.contour_level <= MAX_CONTOUR_LEVEL,
+             f"must be in 0..{MAX_CONTOUR_LEVEL}"),
             ("object_px", 48.0 <= self.object_px <= 400.0, "must be in 48..400"),
             ("edge_samples", 32 <= self.edge_samples <= 1000, "must be in 32..1000"),
             ("min_presence", 0.0 <= self.min_presence < 1.0, "must be in [0, 1)"),
@@ -339,9 +344,10 @@ class _ViewSample:
 
 def _contour_directions(config: LearningConfig, finer: int = 0) -> NDArray[np.float64]:
     """(V, 3) unit directions (object origin to camera) of the contour
-    model's views (``config.contour_level``, ``finer`` levels more)."""
-    return np.array([v.direction for v in view_directions(config.contour_level + finer,
-                                                          config.max_polar_deg)])
+    model's views (``config.contour_level``, ``finer`` levels more but not
+    beyond the finest level a configuration may ask for, 4: 2,562 views)."""
+    level = min(config.contour_level + finer, MAX_CONTOUR_LEVEL)
+    return np.array([v.direction for v in view_directions(level, config.max_polar_deg)])
 
 
 def _canonical_camera(config: LearningConfig, diameter_mm: float) -> tuple[float, float, int]:

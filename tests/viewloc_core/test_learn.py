@@ -15,10 +15,12 @@ from viewloc_core.features import FeatureConfig, extract_features
 from viewloc_core.learn import (
     CONTOUR_FACE_RENDERS,
     HULL_CONTOUR_LEVELS_FINER,
+    MAX_CONTOUR_LEVEL,
     LearningConfig,
     TrainingView,
     _canonical_camera,
     _canonical_map,
+    _contour_directions,
     contour_render_mesh,
     learn_from_images,
     learn_from_mesh,
@@ -89,6 +91,11 @@ def test_a_dense_mesh_s_contour_views_render_its_simplification():
     assert len(rendered.faces) * 642 <= 1.01 * CONTOUR_FACE_RENDERS
     # The same sphere: its vertices stay on the surface.
     assert np.allclose(np.linalg.norm(rendered.vertices, axis=1), 50.0, atol=0.5)
+
+
+def test_a_hull_s_finer_contour_level_stops_at_the_finest():
+    assert len(_contour_directions(LearningConfig(contour_level=2), 1)) == 642
+    assert len(_contour_directions(LearningConfig(contour_level=MAX_CONTOUR_LEVEL), 1)) == 2_562
 
 
 def test_a_simplified_render_finds_the_dense_mesh_s_own_contour(renderer):
