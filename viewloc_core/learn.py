@@ -74,22 +74,6 @@ BITS_TRANSFORM = 48.0
 #: simplification to this budget (:func:`contour_render_mesh`).
 CONTOUR_FACE_RENDERS = 10_000_000
 
-#: A visual hull's contour views come from this many view-sphere levels
-#: finer than ``LearningConfig.contour_level`` (4: 2,562 views, about 4°
-#: apart). The hull is smooth all over (carving leaves no sharp edge, and
-#: its surface is smoothed), so its outline moves over it with every degree
-#: the view turns, where a mesh's sharp edges stay put. hard-photos (162
-#: photos), learning seeds 0 / 1 / 2, AR_MSSD / AR_MSPD 0.799 / 0.849, 0.846
-#: / 0.895, 0.850 / 0.905 with 642 views -> 0.819 / 0.860, 0.861 / 0.915,
-#: 0.858 / 0.916; learning from the photos 10-11 -> 18 s, the contour
-#: arrays of the model 4 times larger (about 12 MB). Every mesh a level
-#: finer was mixed (paper 0.974 -> 0.987, novel 0.869 -> 0.852 AR_MSSD).
-HULL_CONTOUR_LEVELS_FINER = 1
-
-#: The finest contour view-sphere level (2,562 views) a configuration or a
-#: hull's finer level may reach.
-MAX_CONTOUR_LEVEL = 4
-
 #: A training view is rendered over white instead of black when a quarter of
 #: its outline is darker than this (grey level, full scale 1) over black. A
 #: scene's background is unknown, and against almost any of them the outline
@@ -255,8 +239,7 @@ class LearningConfig:
             ("max_level", 0 <= self.max_level <= 4, "must be in 0..4"),
             ("min_level", 0 <= self.min_level <= self.max_level, "must be in 0..max_level"),
             ("max_polar_deg", 30.0 <= self.max_polar_deg <= 180.0, "must be in 30..180"),
-            ("contour_level", 0 <= self.contour_level <= MAX_CONTOUR_LEVEL,
-             f"must be in 0..{MAX_CONTOUR_LEVEL}"),
+            ("contour_level", 0 <= self.contour_level <= 4, "must be in 0..4"),
             ("object_px", 48.0 <= self.object_px <= 400.0, "must be in 48..400"),
             ("edge_samples", 32 <= self.edge_samples <= 1000, "must be in 32..1000"),
             ("min_presence", 0.0 <= self.min_presence < 1.0, "must be in [0, 1)"),
@@ -342,12 +325,11 @@ class _ViewSample:
     edge_theta: NDArray[np.float64]
 
 
-def _contour_directions(config: LearningConfig, finer: int = 0) -> NDArray[np.float64]:
+def _contour_directions(config: LearningConfig) -> NDArray[np.float64]:
     """(V, 3) unit directions (object origin to camera) of the contour
-    model's views (``config.contour_level``, ``finer`` levels more but not
-    beyond the finest level a configuration may ask for, 4: 2,562 views)."""
-    level = min(config.contour_level + finer, MAX_CONTOUR_LEVEL)
-    return np.array([v.direction for v in view_directions(level, config.max_polar_deg)])
+    model's views (``config.contour_level``)."""
+    return np.array([v.direction for v in view_directions(config.contour_level,
+                                                          config.max_polar_deg)])
 
 
 def _canonical_camera(config: LearningConfig, diameter_mm: float) -> tuple[float, float, int]:
@@ -941,7 +923,7 @@ def learn_from_images(
         # The hull's outline is the photos' own; its creases are where the
         # cones meet, not the part's, so only the outline is fitted.
         with Renderer() as renderer:
-            contour_directions = _contour_directions(config, HULL_CONTOUR_LEVELS_FINER)
+            contour_directions = _contour_directions(config)
             contour = build_contour_model(
                 hull, contour_directions, renderer, d0, f, (size, size),
                 visibility_mesh=contour_render_mesh(hull, len(contour_directions)),

@@ -39,19 +39,9 @@ from viewloc_core.pose import Pose
 from viewloc_core.view_sphere import spiral_directions
 
 #: Voxels along the hull box's longest side on the fine grid: the outline
-#: then steps at under 0.5 % of the part's size, finer than the training
+#: then steps at under 1 % of the part's size, finer than the training
 #: views' pixels (about 1/150 of the diameter at the default object_px).
-#: The surface steps after carving (the blur of SMOOTHING_VOXELS, Taubin
-#: smoothing) are in voxels, and what they take off the outline with them:
-#: 160 -> 240, the hard set's bracket from 162 photos showed 4.5 % less
-#: silhouette area than its true outline at the scenes' poses -> 3.0 %.
-#: hard-photos, learning seeds 0 / 1 / 2: 6D recognition 0.75 / 0.7625 /
-#: 0.775 -> 0.80 / 0.85 / 0.8125 (the bracket's depth error median 6.5 /
-#: 8.1 mm -> 5.8 / 4.8 mm at seeds 0 / 1), AR_MSSD 0.819 / 0.861 / 0.858 ->
-#: 0.814 / 0.884 / 0.848, AR_MSPD 0.860 / 0.915 / 0.916 -> 0.853 / 0.915 /
-#: 0.906: the poses that were right are more accurate, the ranking much the
-#: same. Learning from the photos 18 -> 19-24 s.
-HULL_VOXELS = 240
+HULL_VOXELS = 160
 
 #: Voxels along each side of the coarse grid that finds the part's box.
 COARSE_VOXELS = 40
@@ -87,17 +77,16 @@ UNSEEN_PROBES = 10_000
 SEARCH_HALF_SIDE_SHARE = 0.75
 
 #: Faces the hull is simplified to (:mod:`viewloc_core.mesh_simplify`):
-#: marching cubes on the fine grid gives about 100,000. Its contour views
-#: (``learn.HULL_CONTOUR_LEVELS_FINER``) tell which of its contour points
-#: they see from a further simplification (``learn.contour_render_mesh``).
-#: At 20,000 faces the contour used to fall back to 162 directions (16°
-#: apart), whose outlines project inside the true one where the surface is
-#: curved; 15,000 gave it 642. Hard bench set, learned from 162 photos,
-#: 20,000 -> 15,000 faces, learning seeds 0 / 1: 6D recognition 0.68 /
-#: 0.7375 -> 0.72 / 0.775, AR_MSSD 0.787 / 0.831 -> 0.799 / 0.846, AR_MSPD
-#: 0.849 / 0.901 -> 0.849 / 0.895; the free-form part's depth error median
-#: 5.1 / 5.1 -> 2.7 / 2.8 mm (the bracket's 7.8 / 7.8 -> 7.0 / 8.0);
-#: learning 7 -> 10-11 s.
+#: marching cubes on the fine grid gives about 100,000. At 15,000 the
+#: contour model's 642 views (``LearningConfig.contour_level``) render the
+#: hull itself within ``learn.CONTOUR_FACE_RENDERS``. At 20,000 they used
+#: to fall back to 162 directions (16° apart), whose outlines project inside
+#: the true one where the surface is curved. Hard bench set, learned from 162
+#: photos, 20,000 (162 contour views) -> 15,000 faces, learning seeds 0 / 1:
+#: 6D recognition 0.68 / 0.7375 -> 0.72 / 0.775, AR_MSSD 0.787 / 0.831 ->
+#: 0.799 / 0.846, AR_MSPD 0.849 / 0.901 -> 0.849 / 0.895; the free-form
+#: part's depth error median 5.1 / 5.1 -> 2.7 / 2.8 mm (the bracket's 7.8 /
+#: 7.8 -> 7.0 / 8.0); learning 7 -> 10-11 s.
 HULL_MAX_FACES = 15_000
 
 #: Smoothing (voxels) of the carved occupancy before the surface is

@@ -14,13 +14,10 @@ from viewloc_core.errors import Cancelled, InvalidInputError
 from viewloc_core.features import FeatureConfig, extract_features
 from viewloc_core.learn import (
     CONTOUR_FACE_RENDERS,
-    HULL_CONTOUR_LEVELS_FINER,
-    MAX_CONTOUR_LEVEL,
     LearningConfig,
     TrainingView,
     _canonical_camera,
     _canonical_map,
-    _contour_directions,
     contour_render_mesh,
     learn_from_images,
     learn_from_mesh,
@@ -91,11 +88,6 @@ def test_a_dense_mesh_s_contour_views_render_its_simplification():
     assert len(rendered.faces) * 642 <= 1.01 * CONTOUR_FACE_RENDERS
     # The same sphere: its vertices stay on the surface.
     assert np.allclose(np.linalg.norm(rendered.vertices, axis=1), 50.0, atol=0.5)
-
-
-def test_a_hull_s_finer_contour_level_stops_at_the_finest():
-    assert len(_contour_directions(LearningConfig(contour_level=2), 1)) == 642
-    assert len(_contour_directions(LearningConfig(contour_level=MAX_CONTOUR_LEVEL), 1)) == 2_562
 
 
 def test_a_simplified_render_finds_the_dense_mesh_s_own_contour(renderer):
@@ -201,10 +193,9 @@ def test_masked_photos_from_all_round_carve_a_hull_the_poses_are_refined_on(
     assert model.contour is not None and model.mesh_faces is not None
     hull_contour = ContourModel.from_arrays(model.contour)
     assert not np.any(hull_contour.kinds == KIND_CREASE)
-    # Its outline from the view sphere a level finer than a mesh's (2,562
-    # directions): the hull is smooth all over.
-    level = config.contour_level + HULL_CONTOUR_LEVELS_FINER
-    assert HULL_CONTOUR_LEVELS_FINER >= 1 and hull_contour.n_views == 10 * 4 ** level + 2
+    # Its outline from all the contour level's directions (642), as a
+    # mesh's.
+    assert hull_contour.n_views == 10 * 4 ** config.contour_level + 2
     hull_box = np.array([model.mesh_vertices_mm.min(axis=0), model.mesh_vertices_mm.max(axis=0)])
     bracket_box = np.asarray(centred.bounds)
     assert np.all(hull_box[0] <= bracket_box[0] + 1.0)
