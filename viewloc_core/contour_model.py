@@ -344,12 +344,13 @@ def build_contour_model(
     gen = np.random.default_rng(rng)
     width, height = int(image_size[0]), int(image_size[1])
     cam = Camera(f_px, f_px, (width - 1) / 2.0, (height - 1) / 2.0, width, height)
+    rendered = mesh if visibility_mesh is None else visibility_mesh
     try:
         from viewloc_core.render import prepare
 
-        source: Any = prepare(mesh if visibility_mesh is None else visibility_mesh)
+        source: Any = prepare(rendered)
     except ImportError:
-        source = mesh if visibility_mesh is None else visibility_mesh
+        source = rendered
 
     verts = np.asarray(mesh.vertices, dtype=np.float64)
     face_n = np.asarray(mesh.face_normals, dtype=np.float64)

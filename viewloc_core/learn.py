@@ -18,7 +18,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, fields, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
@@ -52,6 +52,9 @@ from viewloc_core.part_colour import ColourAccumulator
 from viewloc_core.pose import Pose, rot_z
 from viewloc_core.symmetry import Symmetries
 from viewloc_core.view_sphere import direction_from_angles, view_directions, view_rotation
+
+if TYPE_CHECKING:
+    from viewloc_core.contour_model import ContourModel
 
 ProgressFn = Callable[[str, float], None]
 StopFn = Callable[[], bool]
@@ -330,6 +333,18 @@ def _contour_directions(config: LearningConfig) -> NDArray[np.float64]:
     model's views (``config.contour_level``)."""
     return np.array([v.direction for v in view_directions(config.contour_level,
                                                           config.max_polar_deg)])
+
+
+def _contour_of(mesh: trimesh.Trimesh, config: LearningConfig, renderer: Any, d0: float,
+                f: float, size: int) -> ContourModel:
+    """The refinement's contour model of ``mesh`` (the centred part or a
+    hull) from the views of :func:`_contour_directions`, seen through
+    :func:`contour_render_mesh`."""
+    from viewloc_core.contour_model import build_contour_model
+
+    directions = _contour_directions(config)
+    return build_contour_model(mesh, directions, renderer, d0, f, (size, size),
+                               visibility_mesh=contour_render_mesh(mesh, len(directions)))
 
 
 def _canonical_camera(config: LearningConfig, diameter_mm: float) -> tuple[float, float, int]:
@@ -711,7 +726,6 @@ def learn_from_mesh(
     -------
     ObjectModel
     """
-    from viewloc_core.contour_model import build_contour_model
     from viewloc_core.crease_visibility import confirmed_shares, creases_show
     from viewloc_core.mesh import mesh_diameter_mm
     from viewloc_core.mesh_simplify import simplified
@@ -782,10 +796,7 @@ def learn_from_mesh(
         # 3D contour points per direction of a finer sphere than training
         # needs (see contour_level), in the centred frame the poses are
         # computed in, for the pose refinement (§5.2).
-        contour_directions = _contour_directions(config)
-        contour = build_contour_model(
-            centred, contour_directions, renderer, d0, f, (size, size),
-            visibility_mesh=contour_render_mesh(centred, len(contour_directions)))
+        contour = _contour_of(centred, config, renderer, d0, f, size)
         # A part whose own views do not show its creases (a dark part) is
         # fitted and scored by its outline alone (crease_visibility).
         if not creases_show(*confirmed_shares(contour, views_seen, rotations, camera, d0)):
@@ -914,7 +925,6 @@ def learn_from_images(
         hull = visual_hull(masks, photo_poses, camera, diameter_mm)
     contour = None
     if hull is not None:
-        from viewloc_core.contour_model import build_contour_model
         from viewloc_core.render import Renderer
 
         _check_should_stop(should_stop)
@@ -923,11 +933,7 @@ def learn_from_images(
         # The hull's outline is the photos' own; its creases are where the
         # cones meet, not the part's, so only the outline is fitted.
         with Renderer() as renderer:
-            contour_directions = _contour_directions(config)
-            contour = build_contour_model(
-                hull, contour_directions, renderer, d0, f, (size, size),
-                visibility_mesh=contour_render_mesh(hull, len(contour_directions)),
-            ).outline_only().to_arrays()
+            contour = _contour_of(hull, config, renderer, d0, f, size).outline_only().to_arrays()
     if progress is not None:
         progress("finishing", 1.0)
     model = _finish(clusterer, rotations, samples, angles, "images", diameter_mm, d0, f, size,
