@@ -16,6 +16,20 @@ from numpy.typing import NDArray
 
 from viewloc_core.errors import InvalidCameraError
 
+#: Focal lengths (pixels) as multiples of the image's longer side: below
+#: the first the camera would see more than about 170° across, which no
+#: pinhole model describes; above the second less than 0.06°. Outside them
+#: the pose arithmetic loses its precision (a focal length of 1e-10 px made
+#: the pose's rotation NaN).
+FOCAL_SIDES = (0.05, 1000.0)
+#: How far the principal point may lie outside the image, in image sizes
+#: (a crop of a larger sensor keeps the sensor's principal point).
+PRINCIPAL_POINT_MARGIN_SIDES = 10.0
+#: The largest magnitude of a distortion coefficient: calibrated lenses
+#: have |k| up to tens (rational models), |p| below 1; p1 = 1e10 made the
+#: pose's Jacobian singular.
+MAX_DISTORTION_COEFFICIENT = 1e4
+
 
 @dataclass(frozen=True, slots=True)
 class Camera:
@@ -51,10 +65,27 @@ class Camera:
             raise InvalidCameraError("focal lengths fx and fy must be positive", "fx")
         if self.width <= 0 or self.height <= 0:
             raise InvalidCameraError("width and height must be positive", "width")
+        side = max(self.width, self.height)
+        low, high = FOCAL_SIDES[0] * side, FOCAL_SIDES[1] * side
+        for name in ("fx", "fy"):
+            if not low <= getattr(self, name) <= high:
+                raise InvalidCameraError(
+                    f"{name} must be between {low:g} and {high:g} pixels for a "
+                    f"{self.width}x{self.height} image, got {getattr(self, name):g}", name)
+        for name, size in (("cx", self.width), ("cy", self.height)):
+            margin = PRINCIPAL_POINT_MARGIN_SIDES * size
+            if not -margin <= getattr(self, name) <= size + margin:
+                raise InvalidCameraError(
+                    f"{name} must lie within {PRINCIPAL_POINT_MARGIN_SIDES:g} image sizes of "
+                    f"the image, got {getattr(self, name):g}", name)
         if len(self.dist) not in (0, 4, 5, 8):
             raise InvalidCameraError("dist must have 4, 5 or 8 coefficients", "dist")
         if not all(math.isfinite(c) for c in self.dist):
             raise InvalidCameraError("dist coefficients must be finite", "dist")
+        if any(abs(c) > MAX_DISTORTION_COEFFICIENT for c in self.dist):
+            raise InvalidCameraError(
+                f"dist coefficients must be at most {MAX_DISTORTION_COEFFICIENT:g} in "
+                "magnitude", "dist")
 
     @property
     def K(self) -> NDArray[np.float64]:

@@ -44,8 +44,24 @@ def test_scaled_keeps_pixel_centres():
     assert half.cx == pytest.approx(159.5)
 
 
-@pytest.mark.parametrize("bad", [dict(fx=0.0), dict(fy=-1.0), dict(cx=float("nan"))])
-def test_rejects_bad_intrinsics(bad):
+@pytest.mark.parametrize(("bad", "field"), [
+    (dict(fx=0.0), "fx"), (dict(fy=-1.0), "fx"), (dict(cx=float("nan")), "cx"),
+    # Beyond any pinhole lens (a focal length of 1e-10 px made the pose NaN).
+    (dict(fx=1e-10, fy=1e-10), "fx"), (dict(fx=31.9), "fx"), (dict(fy=640_001.0), "fy"),
+    (dict(fx=1e200, fy=1e200), "fx"),
+    (dict(cx=-6401.0), "cx"), (dict(cy=1e200), "cy"),
+    (dict(dist=(0.0, 0.0, 1e10, 0.0)), "dist"),
+])
+def test_rejects_bad_intrinsics(bad, field):
     args = dict(fx=500.0, fy=500.0, cx=320.0, cy=240.0, width=640, height=480) | bad
-    with pytest.raises(InvalidCameraError):
+    with pytest.raises(InvalidCameraError) as err:
         Camera(**args)
+    assert err.value.field == field
+
+
+def test_accepts_the_edges_of_the_plausible_range():
+    # A 170° fisheye-like focal length, a telephoto one, a crop's principal
+    # point far outside the image, a strong rational-model coefficient.
+    for args in (dict(fx=32.0, fy=32.0), dict(fx=640_000.0, fy=640_000.0),
+                 dict(cx=-6400.0, cy=5280.0), dict(dist=(1e4, -1e4, 0.5, -0.5, 1e4))):
+        Camera(**(dict(fx=500.0, fy=500.0, cx=320.0, cy=240.0, width=640, height=480) | args))
