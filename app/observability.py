@@ -29,6 +29,7 @@ request_id_var: contextvars.ContextVar[str] = contextvars.ContextVar("request_id
 _REQUEST_ID_OK = re.compile(r"^[A-Za-z0-9._:-]{1,128}$")
 
 log = logging.getLogger("viewloc.access")
+error_log = logging.getLogger("viewloc.app")
 
 
 class JsonFormatter(logging.Formatter):
@@ -135,9 +136,12 @@ class ServiceMiddleware:
         token = request_id_var.set(rid)
         start = time.perf_counter()
         status_holder = {"status": 500}
+        started = False
 
         async def send_wrapped(message: Message) -> None:
+            nonlocal started
             if message["type"] == "http.response.start":
+                started = True
                 status_holder["status"] = int(message["status"])
                 message.setdefault("headers", [])
                 message["headers"] = [
@@ -168,6 +172,16 @@ class ServiceMiddleware:
                 "too-large",
             )
             await response(scope, receive, send_wrapped)
+        except Exception:
+            # A bug answers 500 in problem+json here rather than in the app's
+            # handler for Exception: Starlette's outermost middleware re-raises
+            # after that handler has answered, and the server then drops the
+            # connection, so a client's next request on it failed as well.
+            if started:
+                raise
+            error_log.exception("unhandled error on %s %s", scope["method"], scope["path"])
+            await problem_response(500, "internal error; it has been logged", "internal")(
+                scope, receive, send_wrapped)
         finally:
             elapsed = time.perf_counter() - start
             route = scope.get("route")

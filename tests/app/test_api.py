@@ -112,6 +112,15 @@ def test_bad_input_is_4xx_problem_json_and_leaves_the_store_intact(
             (c.post(loc, files={"image": image},
                     data={"camera": json.dumps({**CAMERA, "dist": [0.1, 0.2, 0.3]})}),
              422, "camera.dist"),
+            # Finite but beyond any lens: these made the pose arithmetic fail (500).
+            (c.post(loc, files={"image": image},
+                    data={"camera": json.dumps({**CAMERA, "fx": 1e-10, "fy": 1e-10})}),
+             422, "camera.fx"),
+            (c.post(loc, files={"image": image},
+                    data={"camera": json.dumps({**CAMERA, "cx": 1e200})}), 422, "camera.cx"),
+            (c.post(loc, files={"image": image},
+                    data={"camera": json.dumps({**CAMERA, "dist": [0, 0, 1e10, 0]})}),
+             422, "camera.dist"),
             (c.post(loc, files={"image": image},
                     data={"camera": cam, "options": json.dumps({"max_detections": 0})}),
              422, "options.max_detections"),
@@ -177,6 +186,25 @@ def test_api_keys(make_server: Callable[..., LiveServer]) -> None:
         for key in ("k-one", "k-two"):
             r = c.get("/v1/objects", headers={"Authorization": f"Bearer {key}"})
             assert r.status_code == 200 and r.json() == {"objects": []}
+
+
+def test_a_bug_answers_500_problem_json_and_the_connection_stays_usable(
+    make_server: Callable[..., LiveServer]
+) -> None:
+    srv = make_server()
+
+    def broken() -> None:
+        raise RuntimeError("a bug")
+
+    srv.app.add_api_route("/v1/broken", broken)
+    with httpx.Client(base_url=srv.url, timeout=30) as c:
+        r = c.get("/v1/broken")
+        assert_problem(r, 500)
+        assert "a bug" not in r.text and len(r.headers["x-request-id"]) == 32
+        # The same pooled connection answers the next request (the server
+        # used to drop it after a 500, failing the client's next call).
+        assert c.get("/healthz").status_code == 200
+        assert 'route="/v1/broken",status="500"' in c.get("/metrics").text
 
 
 def test_operations_metrics_request_id_and_openapi(make_server: Callable[..., LiveServer]) -> None:
