@@ -93,10 +93,13 @@ class MeshSpec(_In):
 class ViewIn(_In):
     """Known viewing angles of one training image."""
 
-    azimuth_deg: FiniteFloat
+    azimuth_deg: FiniteFloat = Field(
+        ge=-36_000, le=36_000,
+        description="Degrees; a turntable's count may run on (at most 100 turns).")
     polar_deg: FiniteFloat = Field(ge=0, le=180)
-    distance_mm: FiniteFloat = Field(gt=0)
-    inplane_deg: FiniteFloat = 0.0
+    distance_mm: FiniteFloat = Field(gt=0, le=1_000_000,
+                                     description="Camera to object origin, mm (at most 1 km).")
+    inplane_deg: FiniteFloat = Field(default=0.0, ge=-36_000, le=36_000)
 
 
 class ImagesSpec(_In):
@@ -104,7 +107,8 @@ class ImagesSpec(_In):
 
     name: str = Field(default="", max_length=200)
     camera: CameraIn
-    object_diameter_mm: FiniteFloat = Field(gt=0)
+    object_diameter_mm: FiniteFloat = Field(
+        gt=0, le=100_000, description="The part's largest extent, mm (at most 100 m, as a mesh).")
     views: list[ViewIn] = Field(min_length=1)
     learning: dict[str, object] | None = None
     symmetries: SymmetriesIn | None = Field(

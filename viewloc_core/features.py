@@ -245,6 +245,10 @@ class ImageFeatures:
         return found, index
 
 
+#: The shortest image side the features work on, pixels.
+MIN_IMAGE_SIDE_PX = 16
+
+
 def to_grey_float(image: NDArray[np.generic]) -> F32:
     """Grey image as float32 in [0, 1] from (H, W) or (H, W, 3|4), uint8 or uint16.
 
@@ -256,8 +260,10 @@ def to_grey_float(image: NDArray[np.generic]) -> F32:
         arr = arr[:, :, :3]
     elif arr.ndim != 2:
         raise InvalidImageError(f"image must be (H, W) or (H, W, 3), got {arr.shape}", "image")
-    if arr.shape[0] < 16 or arr.shape[1] < 16:
-        raise InvalidImageError(f"image too small: {arr.shape[:2]}", "image")
+    if arr.shape[0] < MIN_IMAGE_SIDE_PX or arr.shape[1] < MIN_IMAGE_SIDE_PX:
+        raise InvalidImageError(
+            f"image too small: {arr.shape[1]}x{arr.shape[0]} pixels where the search reads "
+            f"it, at least {MIN_IMAGE_SIDE_PX} on each side", "image")
     if arr.ndim == 3 and arr.dtype in (np.uint8, np.uint16):
         # Channel maximum before the float conversion: three times less work.
         arr = np.maximum(np.maximum(arr[:, :, 0], arr[:, :, 1]), arr[:, :, 2])

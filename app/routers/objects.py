@@ -29,6 +29,7 @@ from model_store.errors import CorruptModelError, ObjectNotFoundError, ObjectNot
 from model_store.files import encode_arrays
 from viewloc_core.camera import Camera
 from viewloc_core.errors import InvalidCameraError, InvalidInputError
+from viewloc_core.features import MIN_IMAGE_SIDE_PX
 
 router = APIRouter(prefix="/v1/objects", tags=["objects"])
 
@@ -221,6 +222,13 @@ def create_object_from_images(
     if problems:
         raise ProblemError(422, "the counts of images, masks and views differ", "validation",
                            problems)
+    # A camera within the part's own radius sees it from inside.
+    inside = [(f"spec.views[{i}].distance_mm", f"{v.distance_mm:g} mm is within the part's "
+               f"radius ({parsed.object_diameter_mm / 2:g} mm)")
+              for i, v in enumerate(parsed.views)
+              if v.distance_mm <= parsed.object_diameter_mm / 2]
+    if inside:
+        raise ProblemError(422, "a view's camera lies within the part", "validation", inside)
     check_learning_spec(parsed.learning)
     arrays: dict[str, np.ndarray] = {}
     size: tuple[int, int] | None = None
@@ -242,6 +250,10 @@ def create_object_from_images(
         img = decode_image(read_limited(upload, settings.max_image_bytes, field), field,
                            settings.max_image_pixels)
         count(field, img.nbytes)
+        if min(img.shape[:2]) < MIN_IMAGE_SIDE_PX:
+            raise ProblemError(422, "image too small", "validation", [(
+                field, f"{img.shape[1]}x{img.shape[0]} pixels; at least {MIN_IMAGE_SIDE_PX} "
+                "on each side")])
         if size is None:
             size = (img.shape[1], img.shape[0])
         elif (img.shape[1], img.shape[0]) != size:

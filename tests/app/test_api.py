@@ -156,6 +156,33 @@ def test_bad_input_is_4xx_problem_json_and_leaves_the_store_intact(
                                               "views": [{"azimuth_deg": 0, "polar_deg": 90,
                                                          "distance_mm": 500}]})}),
              422, "spec.object_diameter_mm"),
+            # Finite but impossible: a part larger than 100 m, a camera inside
+            # the part, photos too small to read (all were queued as jobs).
+            (c.post("/v1/objects/from-images",
+                    files=[("images", ("a.png", png(), "image/png"))],
+                    data={"spec": json.dumps({"camera": CAMERA, "object_diameter_mm": 1e308,
+                                              "views": [{"azimuth_deg": 0, "polar_deg": 90,
+                                                         "distance_mm": 500}]})}),
+             422, "spec.object_diameter_mm"),
+            (c.post("/v1/objects/from-images",
+                    files=[("images", ("a.png", png(), "image/png"))],
+                    data={"spec": json.dumps({"camera": CAMERA, "object_diameter_mm": 100,
+                                              "views": [{"azimuth_deg": 0, "polar_deg": 90,
+                                                         "distance_mm": 40}]})}),
+             422, "spec.views[0].distance_mm"),
+            (c.post("/v1/objects/from-images",
+                    files=[("images", ("a.png", png(), "image/png"))],
+                    data={"spec": json.dumps({"camera": CAMERA, "object_diameter_mm": 100,
+                                              "views": [{"azimuth_deg": 1e308, "polar_deg": 90,
+                                                         "distance_mm": 500}]})}),
+             422, "spec.views[0].azimuth_deg"),
+            (c.post("/v1/objects/from-images",
+                    files=[("images", ("a.png", png(8, 8), "image/png"))],
+                    data={"spec": json.dumps({"camera": {**CAMERA, "cx": 3.5, "cy": 3.5},
+                                              "object_diameter_mm": 10,
+                                              "views": [{"azimuth_deg": 0, "polar_deg": 90,
+                                                         "distance_mm": 500}]})}),
+             422, "images[0]"),
         ]
         for i, (r, status, field) in enumerate(cases):
             try:
