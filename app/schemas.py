@@ -148,6 +148,13 @@ class LocalizeOptionsIn(_In):
         default=None, description="The depths (camera z, mm) the part's origin can have: "
         "sizes outside it are not searched, and no detection outside it is reported.",
     )
+    max_rotation_std_deg: FiniteFloat | None = Field(
+        default=None, gt=0, le=360,
+        description="The most rotation uncertainty a refined detection may have: the largest "
+        "standard deviation of its rotation over all axes (a continuous symmetry's turn set "
+        "aside), degrees. A fit its contour does not pin down (edges along one side of its "
+        "outline only) is not reported. Default 20.",
+    )
 
 
 class MultiLocalizeOptionsIn(LocalizeOptionsIn):

@@ -237,13 +237,16 @@ class ViewlocClient:
                  min_score: float | None = None, refine: bool = True,
                  object_ids: list[str] | None = None, overlay: bool = False,
                  roi: tuple[int, int, int, int] | None = None,
-                 depth_mm: tuple[float, float] | None = None) -> Localization:
+                 depth_mm: tuple[float, float] | None = None,
+                 max_rotation_std_deg: float | None = None) -> Localization:
         """Localize one object (``object_id``) or several (``object_id=None``).
 
         ``camera`` is a dict ``{fx, fy, cx, cy[, dist]}`` or any object with
         those attributes (e.g. ``viewloc_core.camera.Camera``). ``roi``
         ``(x, y, width, height)`` (pixels) is where the part's centre lies;
-        ``depth_mm`` ``(min, max)`` the depths of its origin.
+        ``depth_mm`` ``(min, max)`` the depths of its origin;
+        ``max_rotation_std_deg`` the most rotation uncertainty a detection
+        may have (degrees; the service's default 20 when None).
         """
         import base64
 
@@ -254,6 +257,8 @@ class ViewlocClient:
             options["roi"] = dict(zip(("x", "y", "width", "height"), roi, strict=True))
         if depth_mm is not None:
             options["depth_mm"] = {"min": depth_mm[0], "max": depth_mm[1]}
+        if max_rotation_std_deg is not None:
+            options["max_rotation_std_deg"] = max_rotation_std_deg
         if object_id is None:
             path = "/v1/localize"
             if object_ids is not None:

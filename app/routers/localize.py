@@ -83,7 +83,8 @@ def _core_options(opts: LocalizeOptionsIn) -> LocalizeOptions:
            else ImageRegion(opts.roi.x, opts.roi.y, opts.roi.width, opts.roi.height))
     depth = None if opts.depth_mm is None else DepthRange(opts.depth_mm.min, opts.depth_mm.max)
     return LocalizeOptions(max_detections=opts.max_detections, min_score=opts.min_score,
-                           refine=opts.refine, roi=roi, depth_mm=depth)
+                           refine=opts.refine, roi=roi, depth_mm=depth,
+                           max_rotation_std_deg=opts.max_rotation_std_deg)
 
 
 def _run(model: Any, img: np.ndarray, camera: Camera, opts: LocalizeOptionsIn,
@@ -152,7 +153,8 @@ def localize_object(
         str | None,
         Form(description='JSON: {"max_detections": 1, "min_score": null, "refine": true, '
                          '"roi": {"x", "y", "width", "height"} (optional), '
-                         '"depth_mm": {"min", "max"} (optional)}'),
+                         '"depth_mm": {"min", "max"} (optional), '
+                         '"max_rotation_std_deg": 20 (optional)}'),
     ] = None,
     overlay: Overlay = False,
 ) -> dict[str, Any]:
@@ -193,7 +195,7 @@ def localize_many(
     options: Annotated[
         str | None,
         Form(description='JSON: {"object_ids": [...], "max_detections": 1, "min_score": null, '
-                         '"roi": {...}, "depth_mm": {...}, '
+                         '"roi": {...}, "depth_mm": {...}, "max_rotation_std_deg": 20, '
                          '"refine": true}'),
     ] = None,
     overlay: Overlay = False,

@@ -204,6 +204,15 @@ def test_a_region_and_a_depth_range_bound_where_the_part_is_looked_for(
         assert_problem(ask({"roi": {"x": 0, "y": 0, "width": 40}}), 422, "options.roi.height")
         assert_problem(ask({"depth_mm": {"min": 700, "max": 500}}), 422, "options.depth_mm.max")
         assert_problem(ask({"depth_mm": {"min": 0, "max": 500}}), 422, "options.depth_mm.min")
+        assert_problem(ask({"max_rotation_std_deg": 0}), 422, "options.max_rotation_std_deg")
+        assert_problem(ask({"max_rotation_std_deg": "x"}), 422, "options.max_rotation_std_deg")
+        # The barbell's pose is pinned down to well under the limits asked.
+        for limit in (5.0, 360.0):
+            pinned = ask({"max_rotation_std_deg": limit})
+            assert pinned.status_code == 200, pinned.text
+            assert [d["pose"] for d in pinned.json()["detections"]] == [dets[0]["pose"]]
+        # No refined pose is known to a thousandth of a degree: nothing is reported.
+        assert ask({"max_rotation_std_deg": 1e-3}).json()["detections"] == []
         assert_problem(ask({"roi": {"x": 300, "y": 0, "width": 40, "height": 10}},
                            "/v1/localize"), 422, "options.roi")
         assert c.get(f"/v1/objects/{oid}").json()["state"] == "ready"
