@@ -505,11 +505,11 @@ MIN_COLOUR_RANK = 1.6
 #: fits' largest deviations were 14-73° in 14 of 24 (paper, hard, novel; a
 #: rounded distractor taken for the free-form part, a clutter stick for the
 #: barbell's bar), where right fits' 95th percentile was 1-7° by part (the
-#: knob 11°; LM-O's ape, small in real clutter, 10°). At 20° (make bench, learning
-#: seed 0) images without the part that got a detection: paper 4 -> 3 of
-#: 10, hard 10 -> 6 of 12, novel 12 -> 10 of 12, LM-O 11 -> 8 of 18; every
-#: detection of a part unchanged but one LM-O cat turned 61° from the
-#: truth. At 15° LM-O lost two ape poses within 11° of the truth.
+#: knob 11°; LM-O's ape, small in real clutter, 10°). At 20° (make bench,
+#: learning seed 0) images without the part that got a detection: paper 4
+#: -> 3 of 10, hard 10 -> 6 of 12, novel 12 -> 10 of 12, LM-O 11 -> 8 of
+#: 18; every detection of a part unchanged but one LM-O cat turned 61° from
+#: the truth. At 15° LM-O lost two ape poses within 11° of the truth.
 MAX_ROTATION_STD_DEG = 20.0
 
 
