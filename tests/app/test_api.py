@@ -78,6 +78,15 @@ def test_bad_input_is_4xx_problem_json_and_leaves_the_store_intact(
                               if p.is_file() and "sqlite" not in p.name)
         image = ("s.png", png(), "image/png")
         cam = json.dumps(CAMERA)
+        view = {"azimuth_deg": 0, "polar_deg": 90, "distance_mm": 500}
+        photo_spec = {"camera": CAMERA, "object_diameter_mm": 10, "views": [view]}
+
+        def one_photo(changes: dict[str, object], photo: bytes | None = None) -> httpx.Response:
+            """POST /v1/objects/from-images with one photo and the spec changed."""
+            return c.post("/v1/objects/from-images",
+                          files=[("images", ("a.png", photo or png(), "image/png"))],
+                          data={"spec": json.dumps({**photo_spec, **changes})})
+
         loc = f"/v1/objects/{oid}/localize"
         cases: list[tuple[httpx.Response, int, str | None]] = [
             (upload_mesh(c, b"this is not a mesh at all", filename="x.stl"), 422, "mesh"),
@@ -136,53 +145,24 @@ def test_bad_input_is_4xx_problem_json_and_leaves_the_store_intact(
             (c.post("/v1/localize", files={"image": image},
                     data={"camera": cam, "options": json.dumps({"object_ids": ["nope"]})}),
              404, None),
-            (c.post("/v1/objects/from-images",
-                    files=[("images", ("a.png", png(), "image/png"))],
-                    data={"spec": json.dumps({"camera": CAMERA, "object_diameter_mm": 10,
-                                              "views": []})}), 422, "spec.views"),
+            (one_photo({"views": []}), 422, "spec.views"),
             (c.post("/v1/objects/from-images",
                     files=[("images", ("a.png", png(), "image/png")),
                            ("masks", ("m.png", png(100, 100, 1), "image/png"))],
-                    data={"spec": json.dumps({"camera": CAMERA, "object_diameter_mm": 10,
-                                              "views": [{"azimuth_deg": 0, "polar_deg": 90,
-                                                         "distance_mm": 500}]})}),
-             422, "masks[0]"),
+                    data={"spec": json.dumps(photo_spec)}), 422, "masks[0]"),
             (c.post("/v1/objects/from-images",
                     files=[("images", ("a.png", png(), "image/png"))] * 4,
                     data={"spec": "{}"}), 413, "images"),
-            (c.post("/v1/objects/from-images",
-                    files=[("images", ("a.png", png(), "image/png"))],
-                    data={"spec": json.dumps({"camera": CAMERA, "object_diameter_mm": -1,
-                                              "views": [{"azimuth_deg": 0, "polar_deg": 90,
-                                                         "distance_mm": 500}]})}),
-             422, "spec.object_diameter_mm"),
+            (one_photo({"object_diameter_mm": -1}), 422, "spec.object_diameter_mm"),
             # Finite but impossible: a part larger than 100 m, a camera inside
             # the part, photos too small to read (all were queued as jobs).
-            (c.post("/v1/objects/from-images",
-                    files=[("images", ("a.png", png(), "image/png"))],
-                    data={"spec": json.dumps({"camera": CAMERA, "object_diameter_mm": 1e308,
-                                              "views": [{"azimuth_deg": 0, "polar_deg": 90,
-                                                         "distance_mm": 500}]})}),
-             422, "spec.object_diameter_mm"),
-            (c.post("/v1/objects/from-images",
-                    files=[("images", ("a.png", png(), "image/png"))],
-                    data={"spec": json.dumps({"camera": CAMERA, "object_diameter_mm": 100,
-                                              "views": [{"azimuth_deg": 0, "polar_deg": 90,
-                                                         "distance_mm": 40}]})}),
+            (one_photo({"object_diameter_mm": 1e308}), 422, "spec.object_diameter_mm"),
+            (one_photo({"object_diameter_mm": 100, "views": [{**view, "distance_mm": 40}]}),
              422, "spec.views[0].distance_mm"),
-            (c.post("/v1/objects/from-images",
-                    files=[("images", ("a.png", png(), "image/png"))],
-                    data={"spec": json.dumps({"camera": CAMERA, "object_diameter_mm": 100,
-                                              "views": [{"azimuth_deg": 1e308, "polar_deg": 90,
-                                                         "distance_mm": 500}]})}),
-             422, "spec.views[0].azimuth_deg"),
-            (c.post("/v1/objects/from-images",
-                    files=[("images", ("a.png", png(8, 8), "image/png"))],
-                    data={"spec": json.dumps({"camera": {**CAMERA, "cx": 3.5, "cy": 3.5},
-                                              "object_diameter_mm": 10,
-                                              "views": [{"azimuth_deg": 0, "polar_deg": 90,
-                                                         "distance_mm": 500}]})}),
-             422, "images[0]"),
+            (one_photo({"views": [{**view, "azimuth_deg": 1e308}]}), 422,
+             "spec.views[0].azimuth_deg"),
+            (one_photo({"camera": {**CAMERA, "cx": 3.5, "cy": 3.5}}, png(8, 8)), 422,
+             "images[0]"),
         ]
         for i, (r, status, field) in enumerate(cases):
             try:
