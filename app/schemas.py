@@ -153,7 +153,7 @@ class LocalizeOptionsIn(_In):
         description="The most rotation uncertainty a refined detection may have: the largest "
         "standard deviation of its rotation over all axes (a continuous symmetry's turn set "
         "aside), degrees. A fit its contour does not pin down (edges along one side of its "
-        "outline only) is not reported. Default 20.",
+        "outline only) is not reported. Default 30.",
     )
 
 

@@ -246,7 +246,7 @@ class ViewlocClient:
         ``(x, y, width, height)`` (pixels) is where the part's centre lies;
         ``depth_mm`` ``(min, max)`` the depths of its origin;
         ``max_rotation_std_deg`` the most rotation uncertainty a detection
-        may have (degrees; the service's default 20 when None).
+        may have (degrees; the service's default 30 when None).
         """
         import base64
 

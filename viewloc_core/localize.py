@@ -505,12 +505,16 @@ MIN_COLOUR_RANK = 1.6
 #: fits' largest deviations were 14-73° in 14 of 24 (paper, hard, novel; a
 #: rounded distractor taken for the free-form part, a clutter stick for the
 #: barbell's bar), where right fits' 95th percentile was 1-7° by part (the
-#: knob 11°; LM-O's ape, small in real clutter, 10°). At 20° (make bench,
+#: knob 11°; LM-O's ape, small in real clutter, 10°). At 30° (make bench,
 #: learning seed 0) images without the part that got a detection: paper 4
-#: -> 3 of 10, hard 10 -> 6 of 12, novel 12 -> 10 of 12, LM-O 11 -> 8 of
-#: 18; every detection of a part unchanged but one LM-O cat turned 61° from
-#: the truth. At 15° LM-O lost two ape poses within 11° of the truth.
-MAX_ROTATION_STD_DEG = 20.0
+#: -> 3 of 10, hard 10 -> 7 of 12, novel 12 -> 11 of 12, hard-photos 11 ->
+#: 7 of 12, LM-O 11 -> 9 of 18, held-out LM-O objects 62 -> 61 of 65; every
+#: AR the same (LM-O AR_MSPD +0.0001). At 20° more went (paper 3, hard 6,
+#: novel 10, hard-photos 6, LM-O 8) but real photos lost right places fitted
+#: turned over (held-out LM-O: duck 6 and hole puncher 5 fewer 2D-right
+#: detections, AR_MSSD / AR_MSPD 0.1647 / 0.2369 -> 0.1626 / 0.2333); at 15°
+#: LM-O lost two ape poses within 11° of the truth.
+MAX_ROTATION_STD_DEG = 30.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -1871,7 +1875,8 @@ def localize_in_scene(model: ObjectModel, scene: Scene,
         # A fit whose rotation is undetermined is not reported, but it does
         # not send the search on to further places either: fitting more
         # places found other chance fits on part-free images (paper, hard
-        # and novel sets: 21 of 34 reported instead of 19) and no right one.
+        # and novel sets, limit 20°: 21 of 34 reported instead of 19) and
+        # no right one.
         ranked = _ranked([f for f in fits if f.detection.score >= min_score
                           and f.determined(options.rotation_std_limit_deg)
                           and _in_search_space(f.detection, model, camera, options)],

@@ -154,7 +154,7 @@ def localize_object(
         Form(description='JSON: {"max_detections": 1, "min_score": null, "refine": true, '
                          '"roi": {"x", "y", "width", "height"} (optional), '
                          '"depth_mm": {"min", "max"} (optional), '
-                         '"max_rotation_std_deg": 20 (optional)}'),
+                         '"max_rotation_std_deg": 30 (optional)}'),
     ] = None,
     overlay: Overlay = False,
 ) -> dict[str, Any]:
@@ -195,7 +195,7 @@ def localize_many(
     options: Annotated[
         str | None,
         Form(description='JSON: {"object_ids": [...], "max_detections": 1, "min_score": null, '
-                         '"roi": {...}, "depth_mm": {...}, "max_rotation_std_deg": 20, '
+                         '"roi": {...}, "depth_mm": {...}, "max_rotation_std_deg": 30, '
                          '"refine": true}'),
     ] = None,
     overlay: Overlay = False,
