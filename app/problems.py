@@ -173,7 +173,12 @@ def install_problem_handlers(app: FastAPI) -> None:
 
 
 def install_fallback_handler(app: FastAPI) -> None:
-    """A bug still answers in problem+json (status 500), without internals."""
+    """A bug still answers in problem+json (status 500), without internals.
+
+    The last resort: the app's own errors are answered by
+    :class:`app.observability.ServiceMiddleware`, which keeps the connection
+    usable; this handler sees only what goes wrong outside it.
+    """
 
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
