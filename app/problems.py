@@ -149,7 +149,8 @@ def install_problem_handlers(app: FastAPI) -> None:
     @app.exception_handler(StoreError)
     async def _store(_: Request, exc: StoreError) -> JSONResponse:
         if isinstance(exc, (ObjectNotFoundError, JobNotFoundError)):
-            return problem_response(404, exc.message, "not-found")
+            return problem_response(404, exc.message, "not-found",
+                                    [(exc.field, exc.message)] if exc.field else None)
         if isinstance(exc, ObjectNotReadyError):
             return problem_response(409, exc.message, "object-not-ready")
         log.error("store error: %s", exc.message)

@@ -10,6 +10,17 @@ from __future__ import annotations
 
 from viewloc_core.errors import ModelFormatError
 
+#: The most characters of an id an error message repeats back.
+SHOWN_ID_CHARS = 64
+
+
+def shown_id(value: str) -> str:
+    """``value`` quoted for an error message, cut to SHOWN_ID_CHARS (an
+    answer should not echo a 70 kB id back)."""
+    if len(value) <= SHOWN_ID_CHARS:
+        return repr(value)
+    return f"{value[:SHOWN_ID_CHARS]!r}... ({len(value)} characters)"
+
 
 class StoreError(Exception):
     """Base of the store's own errors (not bad input to the core)."""

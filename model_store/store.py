@@ -38,6 +38,7 @@ from model_store.errors import (
     ObjectNotFoundError,
     ObjectNotReadyError,
     StoreError,
+    shown_id,
 )
 from model_store.files import (
     STORE_SCHEMA_VERSION,
@@ -326,7 +327,7 @@ class ModelStore:
 
     def _object_dir(self, object_id: str) -> Path:
         if not is_valid_id(object_id):
-            raise ObjectNotFoundError(f"no object {object_id!r}", "object_id")
+            raise ObjectNotFoundError(f"no object {shown_id(object_id)}", "object_id")
         return self.objects_dir / object_id
 
     # -- objects -----------------------------------------------------------
@@ -392,11 +393,11 @@ class ModelStore:
     def get_object(self, object_id: str) -> ObjectRecord:
         """The object's metadata; :class:`ObjectNotFoundError` when unknown."""
         if not is_valid_id(object_id):
-            raise ObjectNotFoundError(f"no object {object_id!r}", "object_id")
+            raise ObjectNotFoundError(f"no object {shown_id(object_id)}", "object_id")
         with self._read() as conn:
             row = conn.execute("SELECT * FROM objects WHERE object_id=?", (object_id,)).fetchone()
         if row is None:
-            raise ObjectNotFoundError(f"no object {object_id!r}", "object_id")
+            raise ObjectNotFoundError(f"no object {shown_id(object_id)}", "object_id")
         return _object_from_row(row)
 
     def list_objects(self, state: ObjectState | None = None) -> list[ObjectRecord]:
@@ -421,7 +422,7 @@ class ModelStore:
             row = conn.execute("SELECT job_id FROM objects WHERE object_id=?",
                                (object_id,)).fetchone()
             if row is None:
-                raise ObjectNotFoundError(f"no object {object_id!r}", "object_id")
+                raise ObjectNotFoundError(f"no object {shown_id(object_id)}", "object_id")
             conn.execute("DELETE FROM objects WHERE object_id=?", (object_id,))
             self._cancel_in_tx(conn, row["job_id"], "the object was deleted")
             job_row = conn.execute("SELECT * FROM jobs WHERE job_id=?",
@@ -530,11 +531,11 @@ class ModelStore:
     def get_job(self, job_id: str) -> JobRecord:
         """The job's record; :class:`JobNotFoundError` when unknown."""
         if not is_valid_id(job_id):
-            raise JobNotFoundError(f"no job {job_id!r}", "job_id")
+            raise JobNotFoundError(f"no job {shown_id(job_id)}", "job_id")
         with self._read() as conn:
             row = conn.execute("SELECT * FROM jobs WHERE job_id=?", (job_id,)).fetchone()
         if row is None:
-            raise JobNotFoundError(f"no job {job_id!r}", "job_id")
+            raise JobNotFoundError(f"no job {shown_id(job_id)}", "job_id")
         return _job_from_row(row)
 
     def list_jobs(self, state: JobState | None = None) -> list[JobRecord]:

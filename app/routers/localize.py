@@ -28,7 +28,7 @@ from app.schemas import (
 )
 from app.serialize import detection_dict
 from model_store import is_valid_id
-from model_store.errors import ObjectNotFoundError
+from model_store.errors import ObjectNotFoundError, shown_id
 from viewloc_core.camera import Camera
 from viewloc_core.detection import Detection
 from viewloc_core.errors import InvalidCameraError
@@ -208,11 +208,16 @@ def localize_many(
         ids = [o.object_id for o in store.list_objects(state="ready")]
     else:
         ids = list(dict.fromkeys(opts.object_ids))
-        for i, oid in enumerate(ids):
+    for i, oid in enumerate(ids):
+        try:
             if not is_valid_id(oid):
-                raise ObjectNotFoundError(f"no object {oid!r}", f"options.object_ids[{i}]")
-    for oid in ids:
-        store.get_object(oid)
+                raise ObjectNotFoundError(f"no object {shown_id(oid)}")
+            store.get_object(oid)
+        except ObjectNotFoundError as exc:
+            # The answer names the list entry the client gave (404 problem+json
+            # with its field); a ready object deleted meanwhile has none.
+            field = None if opts.object_ids is None else f"options.object_ids[{i}]"
+            raise ObjectNotFoundError(exc.message, field) from exc
     img = _decode(image, settings, timing)
     cam = _camera(camera, img.shape[1], img.shape[0])
     models = [(oid, store.load_model(oid)) for oid in ids]

@@ -144,7 +144,12 @@ def test_bad_input_is_4xx_problem_json_and_leaves_the_store_intact(
             (c.delete("/v1/jobs/xyz"), 404, None),
             (c.post("/v1/localize", files={"image": image},
                     data={"camera": cam, "options": json.dumps({"object_ids": ["nope"]})}),
-             404, None),
+             404, "options.object_ids[0]"),
+            # A well-formed id of no object is named by its place in the list.
+            (c.post("/v1/localize", files={"image": image},
+                    data={"camera": cam,
+                          "options": json.dumps({"object_ids": [oid, "0" * 32]})}),
+             404, "options.object_ids[1]"),
             (one_photo({"views": []}), 422, "spec.views"),
             (c.post("/v1/objects/from-images",
                     files=[("images", ("a.png", png(), "image/png")),
@@ -164,6 +169,10 @@ def test_bad_input_is_4xx_problem_json_and_leaves_the_store_intact(
             (one_photo({"camera": {**CAMERA, "cx": 3.5, "cy": 3.5}}, png(8, 8)), 422,
              "images[0]"),
         ]
+        # An id is not echoed back whole (a 70 kB id made a 70 kB answer).
+        long_id = c.get("/v1/objects/" + "a" * 20_000)
+        assert_problem(long_id, 404)
+        assert len(long_id.content) < 1_000 and "20000 characters" in long_id.text
         for i, (r, status, field) in enumerate(cases):
             try:
                 assert_problem(r, status, field)
