@@ -27,8 +27,7 @@ from app.schemas import (
     MultiLocalizeOptionsIn,
 )
 from app.serialize import detection_dict
-from model_store import is_valid_id
-from model_store.errors import ObjectNotFoundError, shown_id
+from model_store.errors import ObjectNotFoundError
 from viewloc_core.camera import Camera
 from viewloc_core.detection import Detection
 from viewloc_core.errors import InvalidCameraError
@@ -210,9 +209,7 @@ def localize_many(
         ids = list(dict.fromkeys(opts.object_ids))
     for i, oid in enumerate(ids):
         try:
-            if not is_valid_id(oid):
-                raise ObjectNotFoundError(f"no object {shown_id(oid)}")
-            store.get_object(oid)
+            store.get_object(oid)  # a malformed id is no object either
         except ObjectNotFoundError as exc:
             # The answer names the list entry the client gave (404 problem+json
             # with its field); a ready object deleted meanwhile has none.
