@@ -6,7 +6,7 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from viewloc_core.mesh import MAX_DIAMETER_MM
+from viewloc_core.mesh import MAX_DIAMETER_MM, MIN_DIAMETER_MM
 
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
 
@@ -110,8 +110,8 @@ class ImagesSpec(_In):
     name: str = Field(default="", max_length=200)
     camera: CameraIn
     object_diameter_mm: FiniteFloat = Field(
-        gt=0, le=MAX_DIAMETER_MM,
-        description="The part's largest extent, mm (at most 100 m, as a mesh's).")
+        ge=MIN_DIAMETER_MM, le=MAX_DIAMETER_MM,
+        description="The part's largest extent, mm (0.1 mm to 100 m, as a mesh's).")
     views: list[ViewIn] = Field(min_length=1)
     learning: dict[str, object] | None = None
     symmetries: SymmetriesIn | None = Field(

@@ -179,6 +179,7 @@ class ViewlocClient:
             optionally ``inplane_deg`` (default 0); the object origin is on the
             optical axis at ``distance_mm``.
         object_diameter_mm : float
+            The part's largest extent, mm (0.1 mm to 100 m).
         masks : list of bytes or paths, optional
             Same count and order as ``images``; non-zero = object.
         name, learning

@@ -38,6 +38,13 @@ MAX_FACES = 2_000_000
 #: Largest accepted diameter in mm (after unit conversion).
 MAX_DIAMETER_MM = 100_000.0
 
+#: Smallest accepted diameter in mm (after unit conversion). A part this
+#: small is nearly always a mesh drawn in metres or inches and uploaded as
+#: millimetres (a 50 mm part in metres is 0.05 "mm" across): learned as it
+#: is, every pose would come out a thousand times too near the camera. The
+#: smallest parts machine vision places (01005 chips) are 0.4 mm long.
+MIN_DIAMETER_MM = 0.1
+
 _FIELD = "mesh"
 
 
@@ -71,7 +78,8 @@ def load_mesh(
     InvalidMeshError
         ``field="mesh"`` when the type is unknown, the bytes do not parse, or
         the mesh has no faces, non-finite vertices, zero extent, more than
-        :data:`MAX_FACES` faces or a diameter above :data:`MAX_DIAMETER_MM`.
+        :data:`MAX_FACES` faces or a diameter above :data:`MAX_DIAMETER_MM`
+        or below :data:`MIN_DIAMETER_MM`.
     """
     if units not in UNIT_TO_MM:
         raise InvalidInputError(
@@ -228,6 +236,12 @@ def _check_size(mesh: trimesh.Trimesh) -> None:
         raise InvalidMeshError(
             f"the mesh is {diameter / 1000.0:.1f} m across, more than the limit of "
             f"{MAX_DIAMETER_MM / 1000.0:.0f} m; check the units",
+            _FIELD,
+        )
+    if diameter < MIN_DIAMETER_MM:
+        raise InvalidMeshError(
+            f"the mesh is {diameter:.3g} mm across, less than the limit of "
+            f"{MIN_DIAMETER_MM} mm; check the units (a mesh in metres needs units \"m\")",
             _FIELD,
         )
 

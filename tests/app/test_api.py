@@ -162,6 +162,8 @@ def test_bad_input_is_4xx_problem_json_and_leaves_the_store_intact(
             # Finite but impossible: a part larger than 100 m, a camera inside
             # the part, photos too small to read (all were queued as jobs).
             (one_photo({"object_diameter_mm": 1e308}), 422, "spec.object_diameter_mm"),
+            # A diameter in metres given as millimetres.
+            (one_photo({"object_diameter_mm": 0.05}), 422, "spec.object_diameter_mm"),
             (one_photo({"object_diameter_mm": 100, "views": [{**view, "distance_mm": 40}]}),
              422, "spec.views[0].distance_mm"),
             (one_photo({"views": [{**view, "azimuth_deg": 1e308}]}), 422,

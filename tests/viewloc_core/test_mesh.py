@@ -136,6 +136,11 @@ def test_degenerate_and_absurd_meshes_are_refused(monkeypatch):
     huge = trimesh.creation.box(extents=(200.0, 1.0, 1.0))
     with pytest.raises(InvalidMeshError, match="limit"):
         load_mesh(_export(huge, "ply"), file_type="ply", units="m")
+    # A 50 mm part drawn in metres and uploaded as millimetres.
+    in_metres = trimesh.creation.box(extents=(0.05, 0.02, 0.01))
+    _expect_mesh_error(_export(in_metres, "ply"), "ply", "check the units")
+    assert load_mesh(_export(in_metres, "ply"), file_type="ply", units="m").extents[0] == (
+        pytest.approx(50.0))
     monkeypatch.setattr(mesh_module, "MAX_FACES", 11)
     _expect_mesh_error(_export(_box(), "ply"), "ply", "faces, more than")
 
