@@ -66,6 +66,7 @@ def score_target(
         ref_err_px=vm.reference_point_error_px(xy, cam, target.pose),
         recognized_2d=vm.recognized_2d(xy, cam, target.pose, obj.diameter_mm),
         dz_mm=dz,
+        depth_mm=float(target.pose.t_m2c[2]),
         dxy_mm=dxy,
         dalpha_deg=da,
         g=vm.g_from_deltas(dz, dxy, da),
@@ -187,6 +188,31 @@ def summarise(records: list[Record], objects: dict[str, BenchObject], width: int
     stages = stage_medians_ms(records)
     if stages:
         out["stage_median_ms"] = stages
+    out.update(right_place_errors(records))
+    return out
+
+
+#: A detection at the right place (``recognized_2d``) whose rotation is
+#: further than this from the truth (symmetries allowed for) is counted as
+#: turned: a part seen from its other side, not a pose a degree or two off.
+TURNED_DEG = 30.0
+
+
+def right_place_errors(records: list[Record]) -> Record:
+    """What keeps the detections at the right place from being right in 6D:
+    the share of them turned more than :data:`TURNED_DEG`
+    (``turned_share``) and their median depth error as a share of the
+    part's true depth (``median_depth_error_rel``, the pose's error along the
+    line of sight, which an outline pins least). Empty without any such
+    detection; ``median_depth_error_rel`` only for records with ``depth_mm``."""
+    right = [r for r in records if r.get("recognized_2d") and "dalpha_deg" in r]
+    if not right:
+        return {}
+    out: Record = {"turned_share": round(
+        float(np.mean([r["dalpha_deg"] > TURNED_DEG for r in right])), 4)}
+    depth = [r["dz_mm"] / r["depth_mm"] for r in right if r.get("depth_mm")]
+    if depth:
+        out["median_depth_error_rel"] = round(float(np.median(depth)), 5)
     return out
 
 
@@ -427,6 +453,11 @@ def format_table(name: str, bench: BenchSet, result: Record | None, header: str)
     if o.get("stage_median_ms"):
         lines.append("stage medians: " + ", ".join(
             f"{stage} {ms:.1f}" for stage, ms in o["stage_median_ms"].items()) + " ms")
+    if "turned_share" in o:
+        lines.append(
+            f"right place: {100 * o['turned_share']:.0f}% turned over {TURNED_DEG:.0f} deg"
+            + (f", median depth error {100 * o['median_depth_error_rel']:.2f}%"
+               if "median_depth_error_rel" in o else ""))
     if "copies" in result:
         c = result["copies"]
         lines.append(

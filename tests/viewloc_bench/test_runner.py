@@ -346,3 +346,55 @@ def test_the_core_localizer_leaves_its_stage_times() -> None:
     assert all(ms >= 0.0 for ms in localizer.last_timing_ms.values())
     # Asked for more detections than its own default, it still answers.
     assert isinstance(localizer(image, cam, max_detections=2), list)
+
+
+class _TurnedOracle(OracleBackend):
+    """The truth's place for every image, 2 % farther along its line of
+    sight, and in one image turned by ``turn`` (object frame)."""
+
+    def __init__(self, bench: sets.BenchSet, turned_image: str, turn: np.ndarray) -> None:
+        super().__init__(bench, "", fp=False)
+        self.turned = {self._key(_load(im.path)) for im in bench.images
+                       if im.path.name == turned_image}
+        self.turn = turn
+
+    def learn(self, obj: sets.BenchObject) -> LearnedObject:
+        def run(image: np.ndarray, camera: Camera) -> list[Detection]:
+            key = self._key(image)
+            pose = self.truth[key]
+            if pose is None:
+                return []
+            R = pose.R_m2c @ self.turn if key in self.turned else pose.R_m2c
+            uv = camera.project(pose.t_m2c[None])[0]
+            return [Detection(0.9, -10.0, 0, 0.0, 90.0, Similarity2D(uv[0], uv[1], 0.0, 1.0),
+                              Pose(R, 1.02 * pose.t_m2c))]
+
+        return LearnedObject(obj.name, run, 0.01, 130, 18)
+
+
+def test_right_place_detections_turned_and_their_depth_error_are_reported(
+    tiny_paper_set: Path,
+) -> None:
+    from viewloc_core import metrics as vm
+
+    bench = sets.load_generated(tiny_paper_set)
+    symmetries = bench.objects["barbell"].symmetries
+    # A quarter turn about the object axis across the bar that is furthest
+    # from a symmetry of the barbell (a turn about the bar is none at all).
+    quarter = max((Rotation.from_rotvec(np.radians(90.0) * axis).as_matrix() for axis in np.eye(3)),
+                  key=lambda R: vm.paper_deltas(Pose(R, np.zeros(3)), Pose(np.eye(3), np.zeros(3)),
+                                                symmetries)[2])
+    posed = [im for im in bench.images if im.targets[0].pose is not None]
+    res = runner.evaluate_set(bench, _TurnedOracle(bench, posed[0].path.name, quarter),
+                              log=lambda s: None)
+    records = {r["image"]: r for r in res["records"]}
+    assert all(r["recognized_2d"] for r in records.values())
+    assert records[posed[0].path.name]["dalpha_deg"] > runner.TURNED_DEG
+    o = res["overall"]
+    assert o["turned_share"] == pytest.approx(1 / len(posed), abs=1e-4)
+    assert o["median_depth_error_rel"] == pytest.approx(0.02, abs=1e-4)
+    table = runner.format_table("paper", bench, res, "oracle")
+    assert (f"right place: {100 / len(posed):.0f}% turned over 30 deg, "
+            "median depth error 2.00%") in table
+    # Nothing at the right place: nothing to report.
+    assert runner.right_place_errors([{"recognized_2d": False}]) == {}
