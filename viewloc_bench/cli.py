@@ -210,6 +210,10 @@ def main(argv: list[str] | None = None) -> int:
             "recognized_6d": "top detection's MSSD < 0.1 x object diameter (symmetry-aware)",
             "g": "paper Eq. 3, fz=1/250000, fxy=1/50000, falpha=1/10000, mm and deg, "
             "min over symmetries; mean/median over 2D-recognized targets",
+            "turned_share": "share of the 2D-recognized targets whose top detection's "
+            f"rotation is more than {runner.TURNED_DEG:g} deg from the truth (symmetry-aware)",
+            "median_depth_error_rel": "median over the 2D-recognized targets of the depth "
+            "error of the object origin (symmetry-aware) over the true depth",
         },
         "sets": {},
     }

@@ -35,6 +35,11 @@ from viewloc_core.detection import Detection
 
 Record = dict[str, Any]
 
+#: A detection at the right place (``recognized_2d``) whose rotation is
+#: further than this from the truth (symmetries allowed for) is counted as
+#: turned: a part seen from its other side, not a pose a degree or two off.
+TURNED_DEG = 30.0
+
 
 def score_target(
     target: Target, obj: BenchObject, image: BenchImage, dets: list[Detection], latency_ms: float
@@ -190,12 +195,6 @@ def summarise(records: list[Record], objects: dict[str, BenchObject], width: int
         out["stage_median_ms"] = stages
     out.update(right_place_errors(records))
     return out
-
-
-#: A detection at the right place (``recognized_2d``) whose rotation is
-#: further than this from the truth (symmetries allowed for) is counted as
-#: turned: a part seen from its other side, not a pose a degree or two off.
-TURNED_DEG = 30.0
 
 
 def right_place_errors(records: list[Record]) -> Record:
