@@ -4,14 +4,11 @@ A contour fit that found image edges along a whole outline fixes every
 rotation of the part to a degree or so; one that found them along one side
 only, or along an outline that looks the same turned (a rounded clutter
 object taken for a smooth part, a clutter stick for a barbell's bar), leaves the
-rotation free in some direction, and its Gauss-Newton covariance says so.
-Measured on the bench's images without the part (paper, hard and novel
-sets, learning seed 0): of the 24 whose top fit was refined, 14 had a
-largest rotation deviation of 14-73°, where right fits' 95th percentile was
-1-7° by part (the knob 11°; LM-O's ape, small in real clutter, 10°). Those
-figures are the largest of the three camera axes' deviations; the
-principal deviation used here is at least as large, and does not depend on
-how the camera's axes lie.
+rotation free in some direction, and its Gauss-Newton covariance says so
+(the figures that set the limit applied to it are at
+:data:`viewloc_core.localize.MAX_ROTATION_STD_DEG`). The principal
+deviation used here is at least as large as the largest of the three
+camera axes' deviations, and does not depend on how the camera's axes lie.
 
 A rotation about the axis of a part's continuous symmetry (a barbell seen
 end-on) changes nothing in the image and is no uncertainty of the pose that
