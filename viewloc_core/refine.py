@@ -444,6 +444,34 @@ def project_contour_view(
     return None if proj is None else (proj.uv, proj.n2)
 
 
+def contour_in_image_fraction(camera: Camera, contour: ContourModel, pose: Pose,
+                              self_edge_weight: float = 1.0) -> float:
+    """Share of the contour of the view nearest to ``pose`` that projects
+    inside the image (a pixel from its border), weighted as the inlier
+    fraction weighs it: the part's own edges by ``self_edge_weight``
+    (:attr:`RefineOptions.self_edge_weight`), its outline in full.
+
+    The inlier fraction counts the in-image points only; times this share it
+    counts the points outside the image as unconfirmed.
+
+    Returns
+    -------
+    float
+        In [0, 1]; 0 when no contour point projects in front of the camera.
+    """
+    projector = _Projector(camera, contour, 1, self_edge_weight=self_edge_weight)
+    # A negative margin widens the window to take in every projected point.
+    everywhere = projector.project(pose, margin_px=-_UNBOUNDED_MARGIN_PX)
+    inside = projector.project(pose, margin_px=1.0)
+    if everywhere is None or inside is None:
+        return 0.0
+    return float(inside.weight.sum() / everywhere.weight.sum())
+
+
+#: A window margin beyond any projected point (see :func:`contour_in_image_fraction`).
+_UNBOUNDED_MARGIN_PX = 1e9
+
+
 @functools.lru_cache(maxsize=64)
 def _search_prior(search: int) -> Array:
     """Weight of each interior offset ``-search + 1 .. search - 1`` of a

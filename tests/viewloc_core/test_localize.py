@@ -99,6 +99,27 @@ def test_reference_point_is_the_image_of_the_mesh_origin(
 
 
 
+def test_the_contour_beyond_the_image_border_counts_as_unconfirmed(
+        renderer, bracket_mesh, bracket_model):
+    # A fit that puts much of the part outside the image is judged by what is
+    # left inside: found at its place, but scored as the share of its whole
+    # contour confirmed, as a part hidden by as much would be.
+    cam = Camera(560.0, 560.0, 319.5, 239.5, 640, 480)
+    R = view_directions(1)[9].R_m2c
+    border_x_mm = (cam.width - 1 - cam.cx) * 650.0 / cam.fx
+    scores = []
+    for x_mm in (0.0, border_x_mm):
+        pose = Pose(R, np.array([x_mm, 0.0, 650.0]))
+        image = render_scene(renderer, bracket_mesh, cam, pose)
+        det = localize(bracket_model, image, cam, LocalizeOptions(min_score=0.0)).detections[0]
+        origin_px = cam.project(pose.t_m2c[None])[0]
+        assert np.hypot(det.similarity.x - origin_px[0], det.similarity.y - origin_px[1]) < 8.0
+        scores.append(det.score)
+    inside, cut = scores
+    assert inside > 0.7
+    assert cut < 0.75 * inside
+
+
 def test_a_part_in_fog_is_found_as_in_clear_air(renderer, bracket_mesh, bracket_model,
                                                 monkeypatch):
     # Fog scales every gradient by the share of light that gets through

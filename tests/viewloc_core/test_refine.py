@@ -19,6 +19,7 @@ from viewloc_core.pose import Pose, rotation_angle_deg
 from viewloc_core.refine import (
     STD_CALIBRATION,
     RefineOptions,
+    contour_in_image_fraction,
     correlation_inflation,
     nearest_neighbours,
     prepare_edges,
@@ -162,6 +163,27 @@ def test_wrong_pose_gets_a_low_inlier_fraction(bracket_contour_scene):
     far = Pose(truth.R_m2c, truth.t_m2c + [150.0, 0.0, 0.0])
     res = refine_pose(image, CAM, far, model)
     assert res.inlier_fraction < 0.3
+
+
+def test_the_share_of_the_contour_in_the_image_falls_as_the_part_leaves_it(
+        bracket_contour_scene):
+    _, _, model = bracket_contour_scene
+    R = Rotation.random(random_state=0).as_matrix()
+    border_x_mm = (CAM.width - 1 - CAM.cx) * 600.0 / CAM.fx
+    shares = [contour_in_image_fraction(CAM, model, Pose(R, np.array([x, 0.0, 600.0])))
+              for x in (0.0, border_x_mm - 60.0, border_x_mm, border_x_mm + 60.0,
+                        border_x_mm + 400.0)]
+    assert shares[0] == 1.0
+    assert all(a >= b for a, b in zip(shares, shares[1:], strict=False))
+    # Centred on the border: about half of the outline on either side.
+    assert 0.3 < shares[2] < 0.7
+    assert shares[-1] == 0.0
+    behind = Pose(R, np.array([0.0, 0.0, -600.0]))
+    assert contour_in_image_fraction(CAM, model, behind) == 0.0
+    # The part's own edges weigh as the inlier fraction weighs them: with
+    # weight 0 the share is the outline's alone, still 1 in the image.
+    assert contour_in_image_fraction(CAM, model, Pose(R, np.array([0.0, 0.0, 600.0])),
+                                     self_edge_weight=0.0) == 1.0
 
 
 def test_shared_edge_pyramid_gives_the_same_result(bracket_contour_scene):
