@@ -11,6 +11,8 @@ from app.problems import PROBLEM_JSON
 from app.schemas import Problem
 
 _DESCRIPTIONS = {
+    400: "The multipart/form-data body could not be read; `errors` names the "
+         "Content-Type header (no boundary) or the body.",
     401: "Missing or wrong API key (only when VIEWLOC_API_KEYS is set).",
     404: "Unknown object or job id.",
     409: "The object is not ready (still learning, failed, or its model is corrupt).",

@@ -125,6 +125,22 @@ def _core_status(exc: ViewlocError) -> int:
     return 409 if isinstance(exc, ModelFormatError) else 422
 
 
+def _unreadable_form(request: Request, status: int, detail: str) -> tuple[str, str] | None:
+    """(field, message) for a multipart/form-data body the form parser could
+    not read, None for any other error.
+
+    Starlette's parser answers 400 with its own words ("Missing boundary in
+    multipart.", "Invalid multipart data.") before any route sees a field;
+    the answer names what to mend: the Content-Type header when it gives no
+    boundary, else the body.
+    """
+    content_type = request.headers.get("content-type", "").lower()
+    if status != 400 or not content_type.startswith("multipart/form-data"):
+        return None
+    field = "content-type" if "boundary=" not in content_type else "body"
+    return field, f"the multipart/form-data body could not be read: {detail}"
+
+
 def install_problem_handlers(app: FastAPI) -> None:
     """Register the exception handlers that produce problem+json."""
 
@@ -168,9 +184,14 @@ def install_problem_handlers(app: FastAPI) -> None:
         return problem_response(422, "the request is not valid", "validation", errors)
 
     @app.exception_handler(StarletteHTTPException)
-    async def _http(_: Request, exc: StarletteHTTPException) -> JSONResponse:
+    async def _http(request: Request, exc: StarletteHTTPException) -> JSONResponse:
         detail = exc.detail if isinstance(exc.detail, str) else str(exc.detail)
-        return problem_response(exc.status_code, detail, headers=dict(exc.headers or {}))
+        headers = dict(exc.headers or {})
+        unreadable = _unreadable_form(request, exc.status_code, detail)
+        if unreadable is not None:
+            field, message = unreadable
+            return problem_response(400, message, errors=[(field, message)], headers=headers)
+        return problem_response(exc.status_code, detail, headers=headers)
 
 
 def install_fallback_handler(app: FastAPI) -> None:

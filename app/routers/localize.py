@@ -138,7 +138,7 @@ def _answer(
     response_model=LocalizationOut,
     response_model_exclude_none=False,
     dependencies=[Depends(require_multipart)],
-    responses=errors(404, 409, 413, 415, 422, 503),
+    responses=errors(400, 404, 409, 413, 415, 422, 503),
     summary="Localize one object in an image (6D pose)",
 )
 def localize_object(
@@ -182,7 +182,7 @@ def localize_object(
     "/v1/localize",
     response_model=MultiLocalizationOut,
     dependencies=[Depends(require_multipart)],
-    responses=errors(404, 409, 413, 415, 422, 503),
+    responses=errors(400, 404, 409, 413, 415, 422, 503),
     summary="Localize several (default: all ready) objects in one image",
 )
 def localize_many(

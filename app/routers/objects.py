@@ -127,7 +127,7 @@ def _created(store_obj: Any, store_job: Any, response: Response) -> dict[str, An
     status_code=202,
     response_model=ObjectCreated,
     dependencies=[Depends(require_multipart)],
-    responses=errors(413, 415, 422, 503),
+    responses=errors(400, 413, 415, 422, 503),
     summary="Learn an object from a CAD mesh",
 )
 def create_object(
@@ -184,7 +184,7 @@ def create_object(
     status_code=202,
     response_model=ObjectCreated,
     dependencies=[Depends(require_multipart)],
-    responses=errors(413, 415, 422, 503),
+    responses=errors(400, 413, 415, 422, 503),
     summary="Learn an object from real images with known viewing angles",
 )
 def create_object_from_images(

@@ -65,6 +65,10 @@ def test_delete_cancels_running_job(make_server: Callable[..., LiveServer]) -> N
         assert r.status_code == 200 and r.json()["state"] == "cancelled"
 
 
+#: A multipart Content-Type with a boundary, for bodies written by hand.
+MULTIPART_ABC = "multipart/form-data; boundary=abc"
+
+
 def test_bad_input_is_4xx_problem_json_and_leaves_the_store_intact(
     make_server: Callable[..., LiveServer], tmp_path: Path
 ) -> None:
@@ -107,6 +111,13 @@ def test_bad_input_is_4xx_problem_json_and_leaves_the_store_intact(
             (c.post("/v1/objects", json={"mesh": "abc"}), 415, None),
             (c.post("/v1/objects", content=b"x" * 10, headers={"content-type": "text/plain"}),
              415, None),
+            # Bodies the form parser cannot read name what to mend.
+            (c.post("/v1/objects", content=b"x" * 10,
+                    headers={"content-type": "multipart/form-data"}), 400, "content-type"),
+            (c.post(loc, content=b"garbage", headers={"content-type": MULTIPART_ABC}),
+             400, "body"),
+            (c.post(loc, content=b"--abc\r\nContent-Disposition: form-data\r\n\r\nx\r\n--abc--\r\n",
+                    headers={"content-type": MULTIPART_ABC}), 400, "body"),
             (c.post(loc, files={"image": ("s.png", b"GIF89a not an image", "image/gif")},
                     data={"camera": cam}), 422, "image"),
             (c.post(loc, files={"image": ("s.png", b"\x89PNG\r\n\x1a\n" + b"\x00" * 40)},
@@ -254,7 +265,7 @@ def test_operations_metrics_request_id_and_openapi(make_server: Callable[..., Li
             if path != "/healthz":
                 assert "401" in op["responses"], (path, method)
     loc = paths["/v1/objects/{object_id}/localize"]["post"]["responses"]
-    assert {"404", "409", "413", "415", "422"} <= set(loc)
+    assert {"400", "404", "409", "413", "415", "422"} <= set(loc)
     schemas = spec["components"]["schemas"]
     assert {"Problem", "ObjectOut", "JobOut", "LocalizationOut", "DetectionOut"} <= set(schemas)
 
