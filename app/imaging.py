@@ -143,6 +143,9 @@ def decode_image(
             )
     buf = np.frombuffer(data, dtype=np.uint8)
     try:
+        # UNCHANGED keeps 16-bit samples and, unlike IMREAD_COLOR, ignores
+        # an EXIF orientation tag: the camera's intrinsics describe the
+        # pixel grid as stored (README, "Image size").
         img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
     except cv2.error as exc:
         raise InvalidImageError(f"the {fmt} data cannot be decoded: {exc}", field) from exc

@@ -1,14 +1,17 @@
-"""Lens distortion: ``app.imaging.undistort`` and the from-images learning task that uses it."""
+"""Uploaded images: ``app.imaging.decode_image`` keeps the stored pixel grid; lens distortion
+(``app.imaging.undistort`` and the from-images learning task that uses it)."""
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import cv2
 import numpy as np
+from PIL import Image
 from scipy.spatial import cKDTree
 
-from app.imaging import undistort
+from app.imaging import decode_image, undistort
 from app.jobs.tasks import learn_images
 from model_store import ModelStore
 from model_store.files import encode_arrays
@@ -101,3 +104,18 @@ def test_learning_from_photos_through_a_lens_removes_the_distortion(tmp_path: Pa
                                                                              strict=True)]))
 
     assert edge_gap(with_dist) < 0.7 * edge_gap(ignoring)
+
+
+def test_an_exif_orientation_tag_is_not_applied() -> None:
+    # The intrinsics describe the stored pixel grid: a JPEG whose EXIF says
+    # "turn 90 degrees" (orientation 6) decodes as stored, 60 wide, 40 high.
+    stored = np.zeros((40, 60, 3), np.uint8)
+    stored[:10, :20] = (255, 0, 0)
+    exif = Image.Exif()
+    exif[0x0112] = 6
+    buf = io.BytesIO()
+    Image.fromarray(stored).save(buf, format="JPEG", quality=95, exif=exif)
+    assert Image.open(io.BytesIO(buf.getvalue())).getexif()[0x0112] == 6
+    decoded = decode_image(buf.getvalue(), "image", 10_000)
+    assert decoded.shape == (40, 60, 3)
+    assert decoded[:10, :20, 0].mean() > 200 and decoded[30:, 40:, 0].mean() < 50
