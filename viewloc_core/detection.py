@@ -56,7 +56,10 @@ class Detection:
     Attributes
     ----------
     score : float
-        Calibrated match quality in [0, 1]; higher is better.
+        Calibrated match quality in [0, 1]; higher is better. Refined: the
+        share of the part's whole predicted contour confirmed by image
+        edges, the part's own edges weighing half and the contour outside
+        the image counting as unconfirmed (README, "What the score means").
     log_probability : float
         g(E, T) ≈ log P(H | E, T) of the probabilistic alignment (paper Eq. 1).
     model_view : int

@@ -444,6 +444,10 @@ def project_contour_view(
     return None if proj is None else (proj.uv, proj.n2)
 
 
+#: A window margin beyond any projected point (see :func:`contour_in_image_fraction`).
+_UNBOUNDED_MARGIN_PX = 1e9
+
+
 def contour_in_image_fraction(camera: Camera, contour: ContourModel, pose: Pose,
                               self_edge_weight: float = 1.0) -> float:
     """Share of the contour of the view nearest to ``pose`` that projects
@@ -466,10 +470,6 @@ def contour_in_image_fraction(camera: Camera, contour: ContourModel, pose: Pose,
     if everywhere is None or inside is None:
         return 0.0
     return float(inside.weight.sum() / everywhere.weight.sum())
-
-
-#: A window margin beyond any projected point (see :func:`contour_in_image_fraction`).
-_UNBOUNDED_MARGIN_PX = 1e9
 
 
 @functools.lru_cache(maxsize=64)
