@@ -464,12 +464,15 @@ def contour_in_image_fraction(camera: Camera, contour: ContourModel, pose: Pose,
         In [0, 1]; 0 when no contour point projects in front of the camera.
     """
     projector = _Projector(camera, contour, 1, self_edge_weight=self_edge_weight)
-    # A negative margin widens the window to take in every projected point.
+    # A negative margin widens the window to take in every projected point;
+    # the image's window (as the refinement's, a pixel from the border) is
+    # then tested here, with the kernel's own comparison.
     everywhere = projector.project(pose, margin_px=-_UNBOUNDED_MARGIN_PX)
-    inside = projector.project(pose, margin_px=1.0)
-    if everywhere is None or inside is None:
+    if everywhere is None:
         return 0.0
-    return float(inside.weight.sum() / everywhere.weight.sum())
+    window = projector.window(1.0)
+    inside = np.all(np.abs(everywhere.uv - window[:2]) <= window[2:], axis=1)
+    return float(everywhere.weight[inside].sum() / everywhere.weight.sum())
 
 
 @functools.lru_cache(maxsize=64)
