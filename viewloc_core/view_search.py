@@ -408,6 +408,7 @@ def search_views(
     feats: ImageFeatures, templates: ViewTemplates, seeds: F64, chance: ChanceRates,
     max_candidates: int = 3, offsets_px: F64 | None = None, kept_seeds: int | None = None,
     screen_angles_deg: tuple[float, ...] = SCREEN_ANGLES_DEG, other_side: int = 0,
+    screened_views: int = SCREENED_VIEWS,
 ) -> list[ViewCandidate]:
     """The training views that explain an image location best.
 
@@ -437,6 +438,10 @@ def search_views(
         than the first's (:data:`OTHER_SIDE_MIN_DEG`), however they rank.
         Their views go through the full grid and the fit on their own, so
         they leave the other candidates as they were.
+    screened_views : int
+        The views that score best in the screen go on to the full grid, this
+        many distinct ones; at least ``max_candidates`` of them get the
+        least-squares fit (:data:`FITTED_CANDIDATES` when more).
 
     Returns
     -------
@@ -454,13 +459,13 @@ def search_views(
     stage1 = _grid_sims(seeds, np.radians(screen_angles_deg), (1.0,))
     views1 = np.tile(np.arange(n_views), len(stage1))
     llr1 = _screen(feats, templates, stage1, chance)
-    best_views = _best_distinct(views1, llr1, SCREENED_VIEWS)
+    best_views = _best_distinct(views1, llr1, screened_views)
     if kept_seeds is not None and len(seeds) > kept_seeds:
         per_seed = llr1.reshape(len(seeds), -1).max(axis=1)
         seeds = seeds[np.sort(np.argsort(-per_seed)[:kept_seeds])]
     stage2 = _grid_sims(seeds, np.radians(COARSE_ANGLES_DEG), COARSE_SCALES)
     candidates = _grid_and_fit(feats, templates, views1[best_views], stage2, chance,
-                               FITTED_CANDIDATES)[:max_candidates]
+                               max(FITTED_CANDIDATES, max_candidates))[:max_candidates]
     if other_side and candidates:
         other = _other_side_best(templates, views1, llr1, candidates[0].view,
                                  OTHER_SIDE_SCREENED)

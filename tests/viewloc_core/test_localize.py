@@ -48,6 +48,7 @@ from viewloc_core.localize import (
     _Fitted,
     _Interior,
     _Located,
+    _LocationFit,
     _non_increasing,
     _on_levels,
     _other_sides,
@@ -60,6 +61,7 @@ from viewloc_core.localize import (
     _surface,
     _tilted_refit,
     _view_candidate_count,
+    _wider_look,
     localize,
     localize_in_scene,
     prepare_scene,
@@ -696,6 +698,65 @@ def test_a_runner_up_view_competes_from_its_share_of_the_best_views_evidence(
     _, view, _, _ = _other_sides(model, loc, 1.0, camera, None, None, shading, first_view,
                                  sim, first_pose, first, _FitOptions())
     assert view == (other_view if above_the_bar else first_view)
+
+
+@pytest.mark.parametrize("wins", [True, False])
+def test_the_wider_look_fits_the_views_its_location_did_not_have(bracket_model, monkeypatch,
+                                                                 wins):
+    # A reported detection's location is searched again for more views. The
+    # location had only the first view; the wider search returns it and
+    # another view, the truth's when ``wins``. Only the other view is
+    # fitted: neither the location's own view again nor, in that first
+    # round, the first fit's outline turns (it won against them already).
+    # Refinement leaves every pose where it is; the first fit ranks 0.8.
+    model = bracket_model
+    camera, first_view, other_view, sim, loc = _two_views_at_one_location(model)
+    loc = _Located(loc.match, loc.candidates[:1])
+    first_pose = _pose_centred(model, first_view, sim, camera)
+    other_pose = _pose_centred(model, other_view, sim, camera)
+    surface = localize_module._surface(model)
+    assert surface is not None and surface[1].outline_turns(first_pose)
+    shading = _RankedByRotation(surface[1], [(other_pose, 1.0 if wins else 0.5)], 0.8)
+    searches = []
+
+    def search_views(feats, templates, seeds, chance, max_candidates, **options):
+        searches.append((seeds, max_candidates, options))
+        return [ViewCandidate(v, np.asarray(seeds[0]), 100.0, 0.9)
+                for v in (first_view, other_view)]
+
+    starts = []
+
+    def refine(edges, camera_, start, contour, options):
+        starts.append(start)
+        return RefinementResult(start, True, 3, 0.5, 0.9)
+
+    judged = []
+    monkeypatch.setattr(localize_module, "search_views", search_views)
+    monkeypatch.setattr(localize_module, "refine_pose", refine)
+    monkeypatch.setattr(localize_module, "RIVAL_SCALE_FACTORS", ())
+    monkeypatch.setattr(localize_module, "_judged",
+                        lambda *args: judged.append(args[-1]) or "judged again")
+    first = RefinementResult(first_pose, True, 10, 0.5, 0.9)
+    fitted = _Fitted(None, location_fit=_LocationFit(loc, first, first_view, sim, first_pose,
+                                                     _FitOptions()))
+    looked = _wider_look(model, None, None, 1.0, camera, None, None, shading, fitted)
+
+    (seeds, max_candidates, options), = searches
+    assert np.array_equal(seeds, [loc.candidates[0].sim])
+    assert max_candidates == localize_module.WIDER_VIEW_CANDIDATES
+    assert options["screened_views"] == localize_module.WIDER_SCREENED_VIEWS
+    # The other view's quick fit first; when it wins, its full fit and then
+    # its own outline turns (round two).
+    assert rotation_angle_deg(starts[0].R_m2c, other_pose.R_m2c) < 1e-6
+    if wins:
+        assert looked == "judged again"
+        (fit,) = judged
+        assert fit.t_view == other_view and fit.location is loc
+        assert rotation_angle_deg(fit.result.pose.R_m2c, other_pose.R_m2c) < 1e-6
+        assert len(starts) > 2
+    else:
+        assert looked is fitted and not judged
+        assert len(starts) == 1
 
 
 def test_a_near_symmetric_part_gets_more_view_candidates(bracket_model):
