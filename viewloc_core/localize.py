@@ -1440,7 +1440,7 @@ def _wider_look(
         fit.start, fit.result, fit.fit_options, rivals)
     if result is fit.result:
         return fitted
-    return _judged(model, camera, contour, shading, loc.candidates[0].hit_fraction,
+    return _judged(model, camera, contour, shading,
                    _LocationFit(loc, result, t_view, similarity, start, fit.fit_options))
 
 
@@ -1568,15 +1568,16 @@ def _final_detection(
         result, t_view, similarity, pose_centred = _other_sides(
             model, loc, factor, camera, edges, contour, shading, t_view, similarity,
             pose_centred, result, fit_options)
-    return _judged(model, camera, contour, shading, best.hit_fraction,
+    return _judged(model, camera, contour, shading,
                    _LocationFit(loc, result, t_view, similarity, pose_centred, fit_options))
 
 
 def _judged(model: ObjectModel, camera: Camera, contour: ContourModel,
-            shading: _Shading | None, score_2d: float, fit: _LocationFit) -> _Fitted:
+            shading: _Shading | None, fit: _LocationFit) -> _Fitted:
     """The detection of a location's refinement: at the refined pose when
-    the refinement holds, else at its start with the lower of the 2D fit's
-    ``score_2d`` and the refinement's inlier fraction as its score."""
+    the refinement holds, else at its start with the lower of the
+    location's 2D fit (its best view's hit fraction) and the refinement's
+    inlier fraction as its score."""
     result, pose_centred = fit.result, fit.start
     # The depth from the 2D scale is uncertain by several %, the image
     # position much less: a refinement that wanders sideways in the
@@ -1603,7 +1604,7 @@ def _judged(model: ObjectModel, camera: Camera, contour: ContourModel,
         rotation_std = rotation_std_deg(result.covariance_6x6, result.pose,
                                         model.symmetry_group())
     else:
-        score = min(score_2d, float(result.inlier_fraction))
+        score = min(fit.location.candidates[0].hit_fraction, float(result.inlier_fraction))
     # The contour outside the image counts as unconfirmed, as the 2D
     # fit's samples outside do (align.coverage): a fit that puts most of
     # the part beyond the border is judged by the little left inside.
@@ -2059,8 +2060,9 @@ def localize_in_scene(model: ObjectModel, scene: Scene,
         reported = [by_detection[id(d)] for d in detections]
         looked = each_on_both(partial(_wider_look, model, feats, chance, factor, camera, edges,
                                       contour, shading), reported)
-        if any(new is not old for new, old in zip(looked, reported, strict=True)):
-            swap = {id(old): new for new, old in zip(looked, reported, strict=True)}
+        swap = {id(old): new for new, old in zip(looked, reported, strict=True)
+                if new is not old}
+        if swap:
             fits = [swap.get(id(f), f) for f in fits]
             detections = answer()
     # Scores do not rise down the list: a detection ranked below another is
