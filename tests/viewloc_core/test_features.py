@@ -35,6 +35,21 @@ def test_square_gives_four_right_angle_junctions():
     assert np.count_nonzero(g.kind == KIND_PARALLEL) >= 2
 
 
+def test_edges_only_gives_the_same_edge_maps_and_nothing_else():
+    # What the view search reads is the same; segments, junctions, pairs
+    # and arcs are not extracted.
+    image = _square_image()
+    image[20:60, 90:110] = 120  # a second shape: more than one part
+    full = extract_features(image)
+    edges = extract_features(image, edges_only=True)
+    for name in ("edge_xy", "edge_theta", "orientation_bits", "strong_bits", "nearest_edge",
+                 "edge_distance"):
+        assert np.array_equal(getattr(full, name), getattr(edges, name)), name
+    assert len(full.segments) and len(full.grouped.kind)
+    assert len(edges.segments) == 0 and len(edges.grouped.kind) == 0
+    assert edges.shape == full.shape
+
+
 def test_edges_do_not_depend_on_brightness_polarity_or_bit_depth():
     bright = extract_features(_square_image(200, 30))
     dark = extract_features(_square_image(30, 200))
