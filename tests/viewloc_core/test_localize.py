@@ -44,6 +44,7 @@ from viewloc_core.localize import (
     _ColourScene,
     _contour_model,
     _convincing,
+    _final_detection,
     _FitOptions,
     _Fitted,
     _Interior,
@@ -759,6 +760,36 @@ def test_the_wider_look_fits_the_views_its_location_did_not_have(bracket_model, 
         assert len(starts) == 1
 
 
+@pytest.mark.parametrize("outline_views", [True, False])
+def test_the_views_of_a_colour_locations_outline_compete_with_its_fit(
+        bracket_model, monkeypatch, outline_views):
+    # A colour location's view search on the photo found only the first
+    # view; its search on the colour's outline found another, the truth's.
+    # With that view among the location's colour rivals its fit competes
+    # and wins; without, the first view's fit stands. Refinement leaves
+    # every pose where it is; the first fit ranks 0.8, the truth 1.0.
+    model = bracket_model
+    camera, first_view, other_view, sim, loc = _two_views_at_one_location(model)
+    rival = loc.candidates[1]
+    loc = _Located(loc.match, loc.candidates[:1], (rival,) if outline_views else ())
+    other_pose = _pose_centred(model, other_view, sim, camera)
+    shading = _RankedByRotation(NearSymmetries(np.zeros((0, 4, 4)), np.ones(0)),
+                                [(other_pose, 1.0)], 0.8)
+    monkeypatch.setattr(localize_module, "refine_pose", _refine_in_place)
+    monkeypatch.setattr(localize_module, "_tilted_refit",
+                        lambda edges, camera_, contour, sym, result, fit_options: result)
+    monkeypatch.setattr(_FitOptions, "near", classmethod(lambda cls, *args: cls()))
+    monkeypatch.setattr(localize_module, "RIVAL_SCALE_FACTORS", ())
+    monkeypatch.setattr(localize_module, "_judged", lambda *args: args[-1])
+    fit = _final_detection(model, loc, None, 1.0, camera, "edges", "contour", 1.0, shading)
+    assert fit.location is loc
+    if outline_views:
+        assert fit.t_view == other_view
+        assert rotation_angle_deg(fit.result.pose.R_m2c, other_pose.R_m2c) < 1e-6
+    else:
+        assert fit.t_view == first_view
+
+
 def test_a_near_symmetric_part_gets_more_view_candidates(bracket_model):
     # An egg-like part's outline is nearly the same from several sides: its
     # rival views lie beyond the best few, so the view search returns more.
@@ -885,8 +916,14 @@ def test_parts_localized_in_one_prepared_scene_get_their_own_answers(
     assert all(alone.values())
     extracted = []
     extract = localize_module.extract_features
-    monkeypatch.setattr(localize_module, "extract_features",
-                        lambda level: extracted.append(level) or extract(level))
+
+    def spied_extract(level, **options):
+        # The image's features; the colour outline's edges are each part's.
+        if not options.get("edges_only"):
+            extracted.append(level)
+        return extract(level, **options)
+
+    monkeypatch.setattr(localize_module, "extract_features", spied_extract)
     built = []
     edges = localize_module.prepare_edges
     monkeypatch.setattr(localize_module, "prepare_edges",

@@ -315,9 +315,10 @@ def test_a_colour_location_explained_no_better_than_clutter_is_not_fitted(
     best_views: list[float] = []  # each proposal's best view's own evidence
 
     def located(shift: float) -> list:
-        def shifted(*args, **kwargs):
-            found = search(*args, **kwargs)
-            best_views.extend(c.log_likelihood_ratio for c in found[:1])
+        def shifted(feats_, *args, **kwargs):
+            found = search(feats_, *args, **kwargs)
+            if feats_ is feats:  # the photo's, not the colour outline's search
+                best_views.extend(c.log_likelihood_ratio for c in found[:1])
             return [replace(c, log_likelihood_ratio=c.log_likelihood_ratio + shift)
                     for c in found]
 
@@ -339,6 +340,66 @@ def test_a_colour_location_explained_no_better_than_clutter_is_not_fitted(
                 if np.hypot(*(loc.candidates[0].sim[:2] - [200.0, 150.0])) < 40]
     assert [loc for loc in located(bar - best + 1.0)
             if np.hypot(*(loc.candidates[0].sim[:2] - [200.0, 150.0])) < 40]
+
+
+def test_a_colour_location_gets_the_views_of_its_colours_outline(orange_model, monkeypatch):
+    """Each colour location is also searched on the outline of the part's
+    colour (:meth:`_ColourScene.outline_features`, made once per image),
+    from the seeds of its photo search; the views found there that the
+    photo's search did not find are the location's colour rivals."""
+    import viewloc_core.localize as localize_module
+    from viewloc_core.align import AlignConfig
+    from viewloc_core.edge_evidence import chance_rates
+    from viewloc_core.features import extract_features
+    from viewloc_core.view_search import view_templates
+
+    # Grey clutter gives the photo's edges what the colour's outline has not.
+    gen = np.random.default_rng(0)
+    image = np.full((300, 400, 3), 120, np.uint8)
+    for _ in range(900):
+        x, y = gen.integers(0, [400, 300])
+        w, h = gen.integers(4, 30, 2)
+        image[y:y + h, x:x + w] = gen.integers(40, 220)
+    yy, xx = np.mgrid[:300, :400]
+    image[(xx - 200) ** 2 + (yy - 150) ** 2 < 40 ** 2] = ORANGE
+    colour = localize_module._ColourScene.of(orange_model, image, 1.0)
+    assert colour is not None
+    feats = extract_features(image)
+    outlines: list[object] = []
+    outline_features = localize_module._ColourScene.outline_features
+    searches: list[tuple[object, np.ndarray, list]] = []
+    search = localize_module.search_views
+
+    def spied_outline(self):
+        outlines.append(outline_features(self))
+        return outlines[-1]
+
+    def spied_search(feats_, templates, seeds, *args, **kwargs):
+        found = search(feats_, templates, seeds, *args, **kwargs)
+        if feats_ is feats:  # a disc is no bracket: kept whatever its evidence
+            found = [replace(c, log_likelihood_ratio=c.log_likelihood_ratio + 1e4)
+                     for c in found]
+        searches.append((feats_, np.array(seeds), found))
+        return found
+
+    monkeypatch.setattr(localize_module._ColourScene, "outline_features", spied_outline)
+    monkeypatch.setattr(localize_module, "search_views", spied_search)
+    located = localize_module._colour_locations(
+        orange_model, colour, feats, view_templates(orange_model), chance_rates(feats),
+        AlignConfig(), [])
+    assert located and len(outlines) == 1
+    # The photo's searches and the outline's, one of each per location kept,
+    # the outline's from the same seeds as the photo's before it.
+    photo = [(seeds, found) for f, seeds, found in searches if f is feats]
+    on_outline = [(seeds, found) for f, seeds, found in searches if f is outlines[0][0]]
+    assert len(on_outline) == len(located) and len(photo) >= len(located)
+    for loc, (seeds, found) in zip(located, on_outline, strict=True):
+        (photo_seeds,) = [s for s, f in photo if f and f[0] is loc.candidates[0]]
+        assert np.array_equal(seeds, photo_seeds)
+        known = {c.view for c in loc.candidates}
+        assert list(loc.colour_rivals) == [c for c in found if c.view not in known]
+        assert len(found) <= localize_module.COLOUR_OUTLINE_CANDIDATES
+    assert any(loc.colour_rivals for loc in located)
 
 
 def test_every_fit_in_a_colour_scene_meets_the_parts_colour_boundary(
