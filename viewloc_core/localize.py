@@ -1618,7 +1618,9 @@ def _final_detection(
             pose_centred, result, fit_options)
     if shading is not None and loc.colour_rivals:
         # The views of the colour's outline compete as the wider look's do
-        # (_wider_look): the fit's own turns were tried above.
+        # (_wider_look): without the fit's own twins and turns in their
+        # first round, which either were tried above or, at a location of
+        # one view and a part without near-symmetries, never are.
         result, t_view, similarity, pose_centred = _other_sides(
             model, loc, factor, camera, edges, contour, shading, t_view, similarity,
             pose_centred, result, fit_options, list(loc.colour_rivals))

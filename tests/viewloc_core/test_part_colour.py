@@ -287,6 +287,20 @@ def test_the_part_is_told_from_a_look_alike_of_another_colour(orange_model, rend
         d.pose.t_m2c.tolist() for d in without_hist]
 
 
+def _orange_disc_in_grey_clutter() -> np.ndarray:
+    """(300, 400, 3) uint8: an orange disc of radius 40 px at (200, 150) in
+    dense grey clutter (edges of every orientation)."""
+    gen = np.random.default_rng(0)
+    image = np.full((300, 400, 3), 120, np.uint8)
+    for _ in range(900):
+        x, y = gen.integers(0, [400, 300])
+        w, h = gen.integers(4, 30, 2)
+        image[y:y + h, x:x + w] = gen.integers(40, 220)
+    yy, xx = np.mgrid[:300, :400]
+    image[(xx - 200) ** 2 + (yy - 150) ** 2 < 40 ** 2] = ORANGE
+    return image
+
+
 def test_a_colour_location_explained_no_better_than_clutter_is_not_fitted(
         orange_model, monkeypatch):
     """An orange disc in grey clutter draws the colour proposals; whether it
@@ -299,14 +313,7 @@ def test_a_colour_location_explained_no_better_than_clutter_is_not_fitted(
     from viewloc_core.features import extract_features
     from viewloc_core.view_search import view_templates
 
-    gen = np.random.default_rng(0)
-    image = np.full((300, 400, 3), 120, np.uint8)
-    for _ in range(900):  # dense grey clutter: edges of every orientation
-        x, y = gen.integers(0, [400, 300])
-        w, h = gen.integers(4, 30, 2)
-        image[y:y + h, x:x + w] = gen.integers(40, 220)
-    yy, xx = np.mgrid[:300, :400]
-    image[(xx - 200) ** 2 + (yy - 150) ** 2 < 40 ** 2] = ORANGE
+    image = _orange_disc_in_grey_clutter()
     colour = localize_module._ColourScene.of(orange_model, image, 1.0)
     assert colour is not None
     feats = extract_features(image)
@@ -353,15 +360,8 @@ def test_a_colour_location_gets_the_views_of_its_colours_outline(orange_model, m
     from viewloc_core.features import extract_features
     from viewloc_core.view_search import view_templates
 
-    # Grey clutter gives the photo's edges what the colour's outline has not.
-    gen = np.random.default_rng(0)
-    image = np.full((300, 400, 3), 120, np.uint8)
-    for _ in range(900):
-        x, y = gen.integers(0, [400, 300])
-        w, h = gen.integers(4, 30, 2)
-        image[y:y + h, x:x + w] = gen.integers(40, 220)
-    yy, xx = np.mgrid[:300, :400]
-    image[(xx - 200) ** 2 + (yy - 150) ** 2 < 40 ** 2] = ORANGE
+    # The clutter gives the photo's edges what the colour's outline has not.
+    image = _orange_disc_in_grey_clutter()
     colour = localize_module._ColourScene.of(orange_model, image, 1.0)
     assert colour is not None
     feats = extract_features(image)
