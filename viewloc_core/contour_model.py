@@ -37,7 +37,6 @@ from numpy.typing import NDArray
 from viewloc_core.camera import Camera
 from viewloc_core.contour_kernels import nearest_view
 from viewloc_core.errors import InvalidInputError, ModelFormatError
-from viewloc_core.in_order import InOrder
 from viewloc_core.pose import Pose
 from viewloc_core.view_sphere import view_rotation
 
@@ -362,14 +361,15 @@ def build_contour_model(
     nrm_all = np.zeros((V, P, 3), dtype=np.float32)
     kinds_all = np.zeros((V, P), dtype=np.uint8)
     counts = np.zeros(V, dtype=np.int32)
-
-    def take(k: int, R_v: NDArray[np.float64], t_v: NDArray[np.float64],
-             depth: NDArray[np.float32]) -> None:
-        """View ``k``'s contour points from its depth render."""
+    for k in range(V):
+        R_v = view_rotation(dirs[k])
+        t_v = np.array([0.0, 0.0, d0_mm])
+        depth = np.asarray(renderer.render_depth(source, cam, Pose(R_v, t_v)).depth_mm,
+                           dtype=np.float32)
         pts, nrm2d, kind = _view_contour(verts, face_n, face_c, edges, dirs[k] * d0_mm,
                                          R_v, t_v, cam, depth, sample_step_px)
         if len(pts) == 0:
-            return
+            continue
         uv = cam.project(pts @ R_v.T + t_v)
         keep = _grid_thin(uv, P, gen)
         n = len(keep)
@@ -379,16 +379,6 @@ def build_contour_model(
         nrm_all[k, :n] = n3
         kinds_all[k, :n] = kind[keep]
         counts[k] = n
-
-    # Each view's points are taken while the next one renders, in view order
-    # (the thinning draws from ``gen``): viewloc_core.in_order.
-    with InOrder("viewloc-contour") as behind:
-        for k in range(V):
-            R_v = view_rotation(dirs[k])
-            t_v = np.array([0.0, 0.0, d0_mm])
-            depth = np.asarray(renderer.render_depth(source, cam, Pose(R_v, t_v)).depth_mm,
-                               dtype=np.float32)
-            behind.submit(take, k, R_v, t_v, depth)
     return ContourModel(dirs, pts_all, nrm_all, kinds_all, counts, float(d0_mm), float(f_px),
                         (width, height))
 

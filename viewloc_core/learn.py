@@ -46,7 +46,6 @@ from viewloc_core.features import (
     orientation_bin,
     to_grey_float,
 )
-from viewloc_core.in_order import InOrder
 from viewloc_core.mesh import MAX_FACES, mesh_vertex_colours
 from viewloc_core.model import ModelView, ObjectModel, TrainingViews
 from viewloc_core.part_colour import ColourAccumulator
@@ -754,36 +753,20 @@ def learn_from_mesh(
     samples: list[_ViewSample] = []
     angles: list[tuple[float, float]] = []
     views_seen: list[NDArray[np.uint8]] = []
-    # A view's clustering and colours wait for nothing but the views before
-    # it: they run behind the next view's render (viewloc_core.in_order),
-    # in the same order as in a plain loop.
-    with Renderer() as renderer, InOrder("viewloc-learn") as behind:
-        # The training views render the part's own faces. Rendering them
-        # from a simplification to 10,000 faces (a 160-px view shows no
-        # more; the LM-O can's colour render 127 -> 27 ms) learned 15-25 %
-        # faster but lost AR on real photos: LM-O objects 9-12, AR_MSSD /
-        # AR_MSPD 0.191 / 0.273 -> 0.184 / 0.266 at learning seed 0, 0.198
-        # / 0.276 -> 0.184 / 0.263 at seed 1 (hole puncher, whose open mesh
-        # lost most, 0.234 -> 0.212 and 0.248 -> 0.212).
+    with Renderer() as renderer:
         prepared = prepare(centred)
         # Only a mesh with colours of its own says what colour the part is.
         colours = (ColourAccumulator(config.seed)
                    if prepared.colours_linear is not None or prepared.texture is not None
                    else None)
         level_counts: dict[int, int] = {}
-        level = None
         for i, view in enumerate(directions):
-            if view.level != level:
-                if level is not None:
-                    behind.drain()
-                    level_counts[level] = len(clusterer.clusters)
-                if view.level > config.min_level:
-                    # A new level starts: stop when the previous one added nothing.
-                    prev = level_counts.get(view.level - 1)
-                    before = level_counts.get(view.level - 2)
-                    if prev is not None and before is not None and prev <= before:
-                        break
-                level = view.level
+            if view.level > config.min_level and view.level not in level_counts:
+                # A new level starts: stop when the previous one added nothing.
+                prev = level_counts.get(view.level - 1)
+                before = level_counts.get(view.level - 2)
+                if prev is not None and before is not None and prev <= before:
+                    break
             _check_should_stop(should_stop)
             if progress is not None:
                 progress(f"rendering view {i + 1} of {total}", i / total)
@@ -802,12 +785,12 @@ def learn_from_mesh(
             sample = _sample_from_image(seen, result.mask, c, config, gen)
             views_seen.append(seen)
             if colours is not None:
-                behind.submit(colours.add, result.color, result.mask)
-            behind.submit(clusterer.add, sample, view.direction)
+                colours.add(result.color, result.mask)
+            clusterer.add(sample, view.direction)
             rotations.append(R)
             samples.append(sample)
             angles.append((view.azimuth_deg, view.polar_deg))
-        behind.drain()
+            level_counts[view.level] = len(clusterer.clusters)
         if progress is not None:
             progress("building contour model", 0.99)
         # 3D contour points per direction of a finer sphere than training
