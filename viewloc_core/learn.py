@@ -755,9 +755,10 @@ def learn_from_mesh(
     views_seen: list[NDArray[np.uint8]] = []
     with Renderer() as renderer:
         # The training views render the part's own faces. Rendering them
-        # from a simplification to 10,000 faces (a 160-px view shows no
-        # more; the LM-O can's colour render 127 -> 27 ms) learned 15-25 %
-        # faster but lost AR on real photos: LM-O objects 9-12, AR_MSSD /
+        # from a simplification to 10,000 faces (a 160-px view shows little
+        # more; the LM-O can's colour render 127 -> 27 ms) learned 7-30 %
+        # faster (hole puncher 52 -> 42 s, two benches at once) but lost AR
+        # on real photos: LM-O objects 9-12, AR_MSSD /
         # AR_MSPD 0.191 / 0.273 -> 0.184 / 0.266 at learning seed 0, 0.198
         # / 0.276 -> 0.184 / 0.263 at seed 1 (hole puncher, whose open mesh
         # lost most, 0.234 -> 0.212 and 0.248 -> 0.212). The renderer keeps
