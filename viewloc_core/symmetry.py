@@ -33,10 +33,9 @@ import numpy as np
 import trimesh
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
-from scipy.spatial.transform import Rotation
 
 from viewloc_core.errors import InvalidInputError, InvalidMeshError
-from viewloc_core.pose import Pose, orthonormalize, rotation_angle_deg
+from viewloc_core.pose import Pose, orthonormalize, rotation_about_axis, rotation_angle_deg
 
 Array = NDArray[np.float64]
 
@@ -98,7 +97,7 @@ class Symmetries:
 
 def _rotation_about(axis: Array, angle_rad: float, point: Array) -> Array:
     """(4, 4) rotation by ``angle_rad`` about the line through ``point`` along ``axis``."""
-    R = Rotation.from_rotvec(axis / np.linalg.norm(axis) * angle_rad).as_matrix()
+    R = rotation_about_axis(axis / np.linalg.norm(axis), angle_rad)
     T = np.eye(4)
     T[:3, :3] = R
     T[:3, 3] = point - R @ point
@@ -551,9 +550,16 @@ def symmetry_transforms(sym: Symmetries, continuous_step_deg: float = 2.0) -> Ar
 
 def _trace_about(M: Array, axis: Array) -> tuple[float, float, float]:
     """(A, B, C) with trace(M · R_axis(θ)) = A cos θ + B sin θ + C (Rodrigues' formula)."""
-    K = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
-    along = float(axis @ M @ axis)
-    return float(np.trace(M)) - along, float(np.trace(M @ K)), along
+    # In scalars: trace(M K), K the cross-product matrix of the axis, is
+    # the axis dotted with M's antisymmetric part; numpy's small-array
+    # calls cost several times the arithmetic (every pose comparison of a
+    # symmetric part comes here).
+    (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = M.tolist()
+    a0, a1, a2 = (float(v) for v in axis)
+    along = (a0 * (m00 * a0 + m01 * a1 + m02 * a2) + a1 * (m10 * a0 + m11 * a1 + m12 * a2)
+             + a2 * (m20 * a0 + m21 * a1 + m22 * a2))
+    twist = a0 * (m12 - m21) + a1 * (m20 - m02) + a2 * (m01 - m10)
+    return m00 + m11 + m22 - along, twist, along
 
 
 def _best_angle_about(M: Array, axis: Array) -> float:

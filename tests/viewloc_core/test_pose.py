@@ -1,10 +1,19 @@
 """Rotation and pose properties (DESIGN.md §3: geometry gets property tests)."""
 
+import math
+
 import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
 
-from viewloc_core.pose import Pose, orthonormalize, rotation_angle_deg, rotation_between
+from viewloc_core.pose import (
+    Pose,
+    orthonormalize,
+    rotation_about_axis,
+    rotation_angle_deg,
+    rotation_between,
+)
 
 finite = st.floats(-1.0, 1.0, allow_nan=False)
 quats = st.tuples(finite, finite, finite, finite).filter(
@@ -74,3 +83,25 @@ def test_euler_angles_at_gimbal_lock_round_trip_without_warning():
             angles = pose.euler_xyz_deg
         again = Pose.from_euler_xyz_deg(angles, np.zeros(3))
         assert rotation_angle_deg(again.R_m2c, pose.R_m2c) < 1e-6
+
+
+@settings(max_examples=200)
+@given(st.tuples(finite, finite, finite).filter(lambda a: np.linalg.norm(a) > 1e-3),
+       st.floats(-7.0, 7.0, allow_nan=False))
+def test_rotation_about_axis_is_scipys_rotation_vector(axis, angle):
+    k = np.array(axis) / np.linalg.norm(axis)
+    np.testing.assert_allclose(rotation_about_axis(k, angle),
+                               Rotation.from_rotvec(k * angle).as_matrix(), atol=1e-12)
+
+
+@settings(max_examples=200)
+@given(quats, st.tuples(finite, finite, finite).filter(lambda a: np.linalg.norm(a) > 1e-3),
+       st.floats(0.0, math.pi, allow_nan=False))
+def test_rotation_angle_is_the_relative_turn_near_0_and_180_too(q, axis, angle):
+    R_a = Pose.from_quaternion(np.array(q), np.zeros(3)).R_m2c
+    k = np.array(axis) / np.linalg.norm(axis)
+    R_b = R_a @ Rotation.from_rotvec(k * angle).as_matrix()
+    assert abs(rotation_angle_deg(R_a, R_b) - math.degrees(angle)) < 1e-9
+    for tiny in (1e-9, 1e-7):
+        turned = R_a @ Rotation.from_rotvec(k * tiny).as_matrix()
+        assert abs(rotation_angle_deg(R_a, turned) - math.degrees(tiny)) < 1e-11

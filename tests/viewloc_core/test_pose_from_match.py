@@ -186,6 +186,22 @@ def test_round_trip_similarity_pose_similarity(sx, sy, alpha, s):
     assert back.scale == pytest.approx(s, rel=1e-9)
 
 
+@settings(max_examples=100, deadline=None)
+@given(sx=st.floats(-300.0, 940.0), sy=st.floats(-300.0, 780.0), alpha=angles,
+       s=st.floats(0.2, 4.0), az=angles, polar=st.floats(0.0, 180.0))
+def test_pinhole_scalar_path_agrees_with_the_general_one(sx, sy, alpha, s, az, polar):
+    # Without distortion and spread the pose is computed in scalars; an
+    # identity spread (isotropic, the same operator) takes the general path.
+    R_v = view_rotation(direction_from_angles(az, polar))
+    sim = Similarity2D(sx, sy, alpha, s)
+    fast = pose_from_similarity(sim, R_v, D0, F_TRAIN, SCENE)
+    general = pose_from_similarity(sim, R_v, D0, F_TRAIN, SCENE, model_spread_px2=np.eye(2))
+    assert rotation_angle_deg(fast.R_m2c, general.R_m2c) < 1e-7
+    np.testing.assert_allclose(fast.t_m2c, general.t_m2c, rtol=1e-10, atol=1e-9)
+    np.testing.assert_allclose(fast.R_m2c.T @ fast.R_m2c, np.eye(3), atol=1e-14)
+    assert np.linalg.det(fast.R_m2c) == pytest.approx(1.0, abs=1e-14)
+
+
 def test_distance_follows_scale_and_focal_ratio():
     R_v = view_rotation(direction_from_angles(0.0, 45.0))
     sim = Similarity2D(SCENE.cx, SCENE.cy, 0.0, 0.5)
