@@ -38,7 +38,7 @@ import numpy as np
 import trimesh
 from numpy.typing import NDArray
 
-from viewloc_core.pose import Pose, orthonormalize
+from viewloc_core.pose import Pose, reorthonormalized
 from viewloc_core.symmetry import (
     Symmetries,
     near_half_turns,
@@ -148,7 +148,7 @@ class NearSymmetries:
             R_rev = S @ R @ M[:3, :3]
             # X -> S (R (Q X + m) + t - p) + p, with R_rev = S R Q.
             t_rev = S @ (R @ M[:3, 3] + t - p) + p
-            out.append(Pose(orthonormalize(R_rev), t_rev))
+            out.append(Pose(reorthonormalized(R_rev), t_rev))
         return out
 
 
@@ -194,7 +194,7 @@ class NearSymmetries:
         out = []
         for axis in (vectors[:, 2], vectors[:, 1], r):
             H = 2.0 * np.outer(axis, axis) - np.eye(3)
-            out.append(Pose(orthonormalize(H @ R), H @ (t - p) + p))
+            out.append(Pose(reorthonormalized(H @ R), H @ (t - p) + p))
         return out
 
 

@@ -39,7 +39,7 @@ from numpy.typing import NDArray
 from viewloc_core.camera import Camera
 from viewloc_core.detection import Similarity2D
 from viewloc_core.errors import InvalidInputError
-from viewloc_core.pose import Pose, orthonormalize, rot_z, rotation_between
+from viewloc_core.pose import Pose, orthonormalize, reorthonormalized, rot_z, rotation_between
 
 Array = NDArray[np.float64]
 
@@ -77,7 +77,6 @@ def _check_inputs(R_view_m2c: NDArray[np.floating], d0_mm: float, f_train_px: fl
     return R
 
 
-_ONE_AND_HALF_I = 1.5 * np.eye(3)
 _ROT90 = np.array([[0.0, -1.0], [1.0, 0.0]])
 # Row-major vec of the similarity a·I + b·Rot90 as a function of (a, b).
 _SIM_BASIS = np.array([[1.0, 0.0], [0.0, -1.0], [0.0, 1.0], [1.0, 0.0]])
@@ -262,9 +261,7 @@ def pose_from_similarity(
     if distance <= 0:
         raise InvalidInputError("scale too large for the training distance", "scale")
     R_m2c = R_z2r @ rot_z(alpha_virtual) @ R_v
-    # A product of rotations is one up to rounding: a Björck step makes it
-    # orthonormal again at a fraction of an SVD's cost.
-    return Pose(R_m2c @ (_ONE_AND_HALF_I - 0.5 * (R_m2c.T @ R_m2c)), distance * ray)
+    return Pose(reorthonormalized(R_m2c), distance * ray)
 
 
 def similarity_from_pose(

@@ -55,7 +55,7 @@ from viewloc_core.errors import InvalidImageError, InvalidInputError
 from viewloc_core.gauss_newton_kernel import gauss_newton_level
 from viewloc_core.gradient import image_gradient
 from viewloc_core.normal_search import search_normals
-from viewloc_core.pose import Pose
+from viewloc_core.pose import Pose, reorthonormalized
 from viewloc_core.refine_kernels import (
     MIN_INLIERS,
     contour_neighbours,
@@ -558,17 +558,6 @@ class _Step:
         )
 
 
-_ONE_AND_HALF_I = 1.5 * np.eye(3)
-
-
-def _reorthonormalized(pose: Pose) -> Pose:
-    """The pose with its rotation matrix made orthonormal again.
-
-    It is a rotation up to rounding, so one Björck step R (3 I - RᵀR) / 2
-    suffices (an SVD is not needed).
-    """
-    R = pose.R_m2c
-    return Pose(R @ (_ONE_AND_HALF_I - 0.5 * (R.T @ R)), pose.t_m2c)
 
 
 def _contiguous(pose: Pose) -> tuple[Array, Array]:
@@ -642,7 +631,7 @@ def refine_pose(
         iterations += done
         last = _Step(*(float(v) for v in step))
     if iterations:
-        pose = _reorthonormalized(pose)
+        pose = Pose(reorthonormalized(pose.R_m2c), pose.t_m2c)
     return _final(pose, camera, projector, edges, opts, iterations, last)
 
 

@@ -10,6 +10,7 @@ from scipy.spatial.transform import Rotation
 from viewloc_core.pose import (
     Pose,
     orthonormalize,
+    reorthonormalized,
     rotation_about_axis,
     rotation_angle_deg,
     rotation_between,
@@ -105,3 +106,13 @@ def test_rotation_angle_is_the_relative_turn_near_0_and_180_too(q, axis, angle):
     for tiny in (1e-9, 1e-7):
         turned = R_a @ Rotation.from_rotvec(k * tiny).as_matrix()
         assert abs(rotation_angle_deg(R_a, turned) - math.degrees(tiny)) < 1e-11
+
+
+@given(quats, quats, st.floats(-1e-9, 1e-9, allow_nan=False))
+def test_a_rotation_off_by_rounding_is_repaired_in_place(q1, q2, noise):
+    R = (Pose.from_quaternion(np.array(q1), np.zeros(3)).R_m2c
+         @ Pose.from_quaternion(np.array(q2), np.zeros(3)).R_m2c)
+    off = R + noise * np.arange(9.0).reshape(3, 3)
+    fixed = reorthonormalized(off)
+    np.testing.assert_allclose(fixed.T @ fixed, np.eye(3), atol=1e-14)
+    np.testing.assert_allclose(fixed, orthonormalize(off), atol=1e-14)
