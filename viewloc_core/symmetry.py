@@ -35,7 +35,13 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from viewloc_core.errors import InvalidInputError, InvalidMeshError
-from viewloc_core.pose import Pose, orthonormalize, rotation_about_axis, rotation_angle_deg
+from viewloc_core.pose import (
+    Pose,
+    orthonormalize,
+    reorthonormalized,
+    rotation_about_axis,
+    rotation_angle_deg,
+)
 
 Array = NDArray[np.float64]
 
@@ -613,7 +619,7 @@ def canonical_pose(
     if best is None:
         raise InvalidInputError("symmetries have no discrete element", "symmetries")
     S = best[1]
-    return Pose(orthonormalize(pose.R_m2c @ S[:3, :3]), pose.R_m2c @ S[:3, 3] + pose.t_m2c)
+    return Pose(reorthonormalized(pose.R_m2c @ S[:3, :3]), pose.R_m2c @ S[:3, 3] + pose.t_m2c)
 
 
 def min_rotation_error_deg(
