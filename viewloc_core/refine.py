@@ -558,8 +558,6 @@ class _Step:
         )
 
 
-
-
 def _contiguous(pose: Pose) -> tuple[Array, Array]:
     """The pose's rotation and translation as C-contiguous arrays: the
     compiled kernels are compiled for those (a view of a (4, 4) matrix
