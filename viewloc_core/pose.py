@@ -85,10 +85,16 @@ def rotation_between(a: NDArray[np.floating], b: NDArray[np.floating]) -> Array:
             perp = np.cross(a, [0.0, 1.0, 0.0])
         perp /= np.linalg.norm(perp)
         return Rotation.from_rotvec(np.pi * perp).as_matrix()
-    # Rodrigues: R = I + sin(t) K + (1 - cos(t)) K^2, K the cross-product
-    # matrix of the unit axis k = v / s, sin(t) = s, cos(t) = c.
-    kx, ky, kz = vx / s, vy / s, vz / s
-    w = 1.0 - c
+    # About the unit axis k = v / s, with sin(t) = s and cos(t) = c.
+    return _rodrigues(vx / s, vy / s, vz / s, c, s)
+
+
+def _rodrigues(kx: float, ky: float, kz: float, cos_t: float, sin_t: float) -> Array:
+    """(3, 3) rotation about the unit axis ``k`` by the angle ``t`` of the
+    given cosine and sine: R = I + sin(t) K + (1 - cos(t)) K², K the
+    cross-product matrix of ``k``."""
+    w = 1.0 - cos_t
+    s = sin_t
     return np.array([
         [1.0 - w * (ky * ky + kz * kz), w * kx * ky - s * kz, w * kx * kz + s * ky],
         [w * kx * ky + s * kz, 1.0 - w * (kx * kx + kz * kz), w * ky * kz - s * kx],
@@ -118,13 +124,7 @@ def rotation_about_axis(axis: NDArray[np.floating], angle_rad: float) -> Array:
     canonical pose turns it about its axis for every fit.
     """
     kx, ky, kz = (float(v) for v in axis)
-    c, s = math.cos(angle_rad), math.sin(angle_rad)
-    w = 1.0 - c
-    return np.array([
-        [c + w * kx * kx, w * kx * ky - s * kz, w * kx * kz + s * ky],
-        [w * kx * ky + s * kz, c + w * ky * ky, w * ky * kz - s * kx],
-        [w * kx * kz - s * ky, w * ky * kz + s * kx, c + w * kz * kz],
-    ])
+    return _rodrigues(kx, ky, kz, math.cos(angle_rad), math.sin(angle_rad))
 
 
 @dataclass(frozen=True, slots=True)
