@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 import trimesh
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from viewloc_core import visual_hull as vh
@@ -46,6 +46,9 @@ def _outside_share(a: np.ndarray, b: np.ndarray) -> float:
 @given(sides=st.tuples(*[st.floats(min_value=30.0, max_value=110.0)] * 3),
        angles=st.tuples(*[st.floats(min_value=-180.0, max_value=180.0)] * 3),
        shift=st.tuples(*[st.floats(min_value=-10.0, max_value=10.0)] * 3))
+# A box whose hull the default quadric collapse pinched (an edge of three
+# faces): the simplification now keeps a closed surface closed.
+@example(sides=(90.0, 39.5, 107.0), angles=(0.0, 0.0, 0.0), shift=(0.0, 0.0, 0.0))
 def test_the_hull_of_a_box_holds_it_and_shows_its_outline(sides, angles, shift):
     box = trimesh.creation.box(extents=sides)
     box.apply_transform(trimesh.transformations.euler_matrix(*np.radians(angles)))
