@@ -47,8 +47,11 @@ def _outside_share(a: np.ndarray, b: np.ndarray) -> float:
        angles=st.tuples(*[st.floats(min_value=-180.0, max_value=180.0)] * 3),
        shift=st.tuples(*[st.floats(min_value=-10.0, max_value=10.0)] * 3))
 # A box whose hull the default quadric collapse pinched (an edge of three
-# faces): the simplification now keeps a closed surface closed.
+# faces): the simplification now keeps a closed surface closed. Seen along
+# their axes, both boxes' hulls stood 3 pixels beyond the mask (2.0 % and
+# 2.1 % of the outline) until the masks that agree carved once more.
 @example(sides=(90.0, 39.5, 107.0), angles=(0.0, 0.0, 0.0), shift=(0.0, 0.0, 0.0))
+@example(sides=(91.0, 39.5, 107.0), angles=(0.0, 0.0, 0.0), shift=(0.0, 0.0, 0.0))
 def test_the_hull_of_a_box_holds_it_and_shows_its_outline(sides, angles, shift):
     box = trimesh.creation.box(extents=sides)
     box.apply_transform(trimesh.transformations.euler_matrix(*np.radians(angles)))
@@ -68,15 +71,14 @@ def test_the_hull_of_a_box_holds_it_and_shows_its_outline(sides, angles, shift):
     assert np.all(hull.bounds[0] > lo - 0.06 * diameter)
     assert np.all(hull.bounds[1] < hi + 0.06 * diameter)
     # From each photo's viewpoint the hull's outline is the photo's mask,
-    # to about a pixel (the voxels are about a third of one): it holds the
-    # mask, and the smoothed corners bulge a little beyond it. Measured from
-    # all 20 viewpoints of 30 random boxes: at most 1.2 % of the hull's
-    # pixels lay more than a pixel outside the mask (a 1 % bound failed for
-    # about one box in 30), at most 0.25 % of the mask's outside the hull.
-    # Every 4th viewpoint keeps the test short.
+    # to about a pixel (the voxels are about a third of one). Measured from
+    # all 162 viewpoints of 30 random boxes, a third of them unturned: at
+    # most 0.23 % of the hull's pixels lay more than a pixel outside the
+    # mask, at most 0.34 % of the mask's outside the hull. Every 4th
+    # viewpoint keeps the test short.
     for mask, pose in zip(masks[::4], poses[::4], strict=True):
         shown = _silhouette(hull, pose)
-        assert _outside_share(shown, mask) < 0.02 and _outside_share(mask, shown) < 0.01
+        assert _outside_share(shown, mask) < 0.01 and _outside_share(mask, shown) < 0.01
 
 
 def test_the_hull_of_a_smooth_part_has_its_normals():
@@ -165,6 +167,48 @@ def test_one_photo_whose_mask_misses_part_of_the_part_is_outvoted():
     hull = vh.visual_hull(damaged, poses, CAMERA, 80.0)
     assert clean is not None and hull is not None
     assert hull.volume == pytest.approx(clean.volume, rel=0.02)
+
+
+def test_a_hole_in_one_mask_bores_no_tunnel():
+    box = trimesh.creation.box(extents=(60.0, 40.0, 30.0))
+    masks, poses = _photos(box)
+    clean = vh.visual_hull(masks, poses, CAMERA, 80.0)
+    holed = [m.copy() for m in masks]
+    rows, cols = np.nonzero(holed[7])
+    v, u = int(rows.mean()), int(cols.mean())
+    holed[7][v - 3: v + 3, u - 3: u + 3] = False  # 36 of its 7,564 pixels
+    hull = vh.visual_hull(holed, poses, CAMERA, 80.0)
+    assert clean is not None and hull is not None
+    assert hull.volume == pytest.approx(clean.volume, rel=0.002)
+    assert _winding_number(hull, np.zeros((1, 3)))[0] > 0.5
+
+
+@settings(max_examples=30, deadline=None)
+@given(mask=st.lists(st.lists(st.booleans(), min_size=21, max_size=21), min_size=5, max_size=5),
+       uv=st.lists(st.tuples(st.floats(-2.5, 23.0), st.floats(-2.5, 7.0)), min_size=1,
+                   max_size=40))
+def test_an_outline_cuts_the_points_beyond_half_a_pixel(mask, uv):
+    """The packed-bit test of the four pixels about a point is the
+    plain one, across byte boundaries (21 columns) and the image's edges."""
+    mask_hw = np.array(mask, bool)
+    height, width = mask_hw.shape
+    uv_px = np.array(uv, np.float64)
+    # A camera that maps the point (u, v, 1) to the pixel (u, v).
+    points = np.column_stack([uv_px, np.ones(len(uv_px))])
+    rotation, translation = np.eye(3)[None], np.zeros((1, 3))
+    near = np.zeros(len(uv_px), bool)
+    for i, (u, v) in enumerate(np.floor(uv_px).astype(int)):
+        block = mask_hw[max(v, 0): max(v + 2, 0), max(u, 0): max(u + 2, 0)]
+        near[i] = bool(block.any())
+    bits = np.packbits(mask_hw, axis=1)[None]
+    cut = vh._outline_cuts(points, rotation, translation, 1.0, 1.0, 0.0, 0.0, bits, width,
+                           len(points))
+    np.testing.assert_array_equal(cut, ~near)
+    # A mask that leaves out more than the allowed share cuts nothing.
+    if (~near).sum() > 0:
+        spared = vh._outline_cuts(points, rotation, translation, 1.0, 1.0, 0.0, 0.0, bits,
+                                  width, int((~near).sum()) - 1)
+        assert not spared.any()
 
 
 def test_photos_through_a_distorting_lens_carve_the_same_hull():
