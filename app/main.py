@@ -13,6 +13,7 @@ from app.jobs.factory import build_runner
 from app.model_warmer import ModelWarmer
 from app.observability import Metrics, ServiceMiddleware, configure_logging
 from app.openapi_doc import install_openapi
+from app.paths import EmptySegmentGuard
 from app.problems import install_fallback_handler, install_problem_handlers
 from app.routers import jobs, localize, objects, ops
 from app.settings import Settings
@@ -104,6 +105,9 @@ def create_app(
     install_problem_handlers(application)
     install_fallback_handler(application)
     install_openapi(application)
+    # Inside the service middleware, which gives its answer a request id and
+    # logs it.
+    application.add_middleware(EmptySegmentGuard)
     application.add_middleware(ServiceMiddleware, metrics=metrics,
                                body_limit=_body_limit(settings))
     return application

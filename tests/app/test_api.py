@@ -151,6 +151,10 @@ def test_bad_input_is_4xx_problem_json_and_leaves_the_store_intact(
             (c.post("/v1/objects/..%2F..%2Fetc/localize", files={"image": image},
                     data={"camera": cam}), 404, None),
             (c.get("/v1/objects/not-an-id"), 404, None),
+            # The id "/": not sent on to the list of objects.
+            (c.get("/v1/objects/%2F"), 404, None),
+            (c.delete("/v1/objects/%2F"), 404, None),
+            (c.get("/v1/objects//"), 404, None),
             (c.get("/v1/jobs/" + "f" * 32), 404, None),
             (c.delete("/v1/jobs/xyz"), 404, None),
             (c.post("/v1/localize", files={"image": image},
