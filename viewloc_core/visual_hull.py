@@ -338,14 +338,15 @@ def visual_hull(masks: Sequence[NDArray[np.generic] | None], poses: Sequence[Pos
     if (len(views) < MIN_HULL_VIEWS
             or unseen_angle_deg([pose for _, pose in views]) > MAX_UNSEEN_ANGLE_DEG):
         return None
-    # Packed to a bit a pixel: a thousand 1280x1024 masks are 160 MB.
-    # Carved through the pinhole alone: the masks as the camera without its
-    # lens distortion would see them.
-    packed = [_packed(undistort(m.astype(np.uint8), camera, nearest=True)[0] > 0)
-              for m, _ in views]
-    mask_bits = np.stack([mask for mask, _ in packed])
-    outline_bits = np.stack([outline for _, outline in packed])
-    del packed
+    # Packed to a bit a pixel: a thousand 1280x1024 masks are 160 MB, each
+    # of the two stacks. Carved through the pinhole alone: the masks as the
+    # camera without its lens distortion would see them.
+    packed_shape = (len(views), camera.height, (camera.width + 7) // 8)
+    mask_bits = np.empty(packed_shape, np.uint8)
+    outline_bits = np.empty(packed_shape, np.uint8)
+    for k, (m, _) in enumerate(views):
+        mask_bits[k], outline_bits[k] = _packed(
+            undistort(m.astype(np.uint8), camera, nearest=True)[0] > 0)
     rotations = np.stack([pose.R_m2c for _, pose in views]).astype(np.float64)
     translations = np.stack([pose.t_m2c for _, pose in views]).astype(np.float64)
     tolerance = int(MISS_TOLERANCE_SHARE * len(views))
