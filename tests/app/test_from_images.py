@@ -130,8 +130,9 @@ def test_learn_from_images_and_localize_through_http(
             assert err_px < 0.1 * vm.image_diameter_px(scene_cam, truth, diameter)
             # 42 masked photos from all round carve the part's visual hull, and
             # the pose is refined on its outline (not the nearest training
-            # view's, 25° apart); the hull bulges over flat faces, so the part
-            # reads a little larger, nearer (measured 1.3-2.9 %).
+            # view's, 25° apart); the carved and smoothed hull's outline falls
+            # a little short of the part's, so the part reads a little larger,
+            # nearer (measured 1.3-2.9 %).
             assert det["refined"] is True
             assert rotation_angle_deg(np.array(det["pose"]["R"]), truth.R_m2c) < 3.0
             t_mm = np.array(det["pose"]["t_mm"])
