@@ -761,13 +761,13 @@ def learn_from_mesh(
         # on real photos: LM-O objects 9-12, AR_MSSD / AR_MSPD 0.191 / 0.273
         # -> 0.184 / 0.266 at learning seed 0, 0.198 / 0.276 -> 0.184 / 0.263
         # at seed 1 (the hole puncher lost most: 0.234 -> 0.212 and 0.248
-        # -> 0.212). The renderer keeps only 1.1-1.3
-        # cores busy; clustering each view on a second thread while the next
-        # one rendered learned the LM-O can, egg box and hole puncher in 41 s
-        # instead of 48-50 s, to the same model, but crashed the process
-        # now and then (1 of 176 fresh processes learning the bracket, and
-        # one CI run, with OpenCV running beside the render): the views are
-        # done one after another here.
+        # -> 0.212). The renderer keeps only 1.1-1.3 cores busy; clustering
+        # each view on a second thread while the next one rendered learned
+        # the LM-O can, egg box and hole puncher in 41 s instead of 48-50 s,
+        # to the same model, but crashed the process now and then (1 of 176
+        # fresh processes learning the bracket, and one CI run, with OpenCV
+        # running beside the render): the views are done one after another
+        # here.
         prepared = prepare(centred)
         # Only a mesh with colours of its own says what colour the part is.
         colours = (ColourAccumulator(config.seed)
