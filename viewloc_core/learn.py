@@ -46,7 +46,7 @@ from viewloc_core.features import (
     orientation_bin,
     to_grey_float,
 )
-from viewloc_core.mesh import MAX_FACES, mesh_vertex_colours
+from viewloc_core.mesh import MAX_FACES, mesh_vertex_colours, outward_wound
 from viewloc_core.model import ModelView, ObjectModel, TrainingViews
 from viewloc_core.part_colour import ColourAccumulator
 from viewloc_core.pose import Pose, rot_z
@@ -740,7 +740,7 @@ def learn_from_mesh(
     diameter = mesh_diameter_mm(mesh)
     if progress is not None and len(mesh.faces) > config.max_faces:
         progress(f"simplifying the mesh to {config.max_faces} faces", 0.0)
-    part = simplified(mesh, config.max_faces)
+    part = simplified(outward_wound(mesh), config.max_faces)
     centred = part.copy()
     centred.apply_translation(-centre)
     d0, f, size = _canonical_camera(config, diameter)

@@ -5,6 +5,8 @@ import math
 import numpy as np
 import pytest
 import trimesh
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from trimesh.exchange.gltf import export_gltf
 
 from viewloc_core import mesh as mesh_module
@@ -14,6 +16,7 @@ from viewloc_core.mesh import (
     mesh_diameter_mm,
     mesh_has_colour,
     mesh_vertex_colours,
+    outward_wound,
 )
 
 EXTENTS = (10.0, 20.0, 30.0)
@@ -151,3 +154,54 @@ def test_unknown_type_and_units_name_their_field():
     with pytest.raises(InvalidInputError) as info:
         load_mesh(_export(_box(), "ply"), file_type="ply", units="furlong")
     assert info.value.field == "units"
+
+
+def _flipped(mesh: trimesh.Trimesh, faces: np.ndarray) -> trimesh.Trimesh:
+    """``mesh`` with the corners of ``faces`` reversed."""
+    out = mesh.copy()
+    rows = np.array(out.faces)
+    rows[faces] = rows[faces][:, ::-1]
+    out.faces = rows
+    return out
+
+
+def _same_triangle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Per row, whether two (F, 3) face arrays list the same corners in the
+    same cyclic order (the same triangle, wound the same way)."""
+    return np.any([np.all(np.roll(b, k, axis=1) == a, axis=1) for k in range(3)], axis=0)
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 3), st.data())
+def test_a_closed_mesh_with_faces_wound_inward_is_wound_outward_again(shape, data):
+    mesh = [trimesh.creation.box(extents=EXTENTS), trimesh.creation.icosphere(2, 15.0),
+            trimesh.creation.cylinder(8.0, 30.0, sections=24),
+            trimesh.creation.annulus(5.0, 12.0, 10.0, sections=20)][shape]
+    mesh.visual.vertex_colors = np.column_stack([
+        np.arange(len(mesh.vertices)) % 256, np.zeros((len(mesh.vertices), 2)),
+        np.full(len(mesh.vertices), 255)]).astype(np.uint8)
+    faces = data.draw(st.lists(st.integers(0, len(mesh.faces) - 1), min_size=1,
+                               max_size=len(mesh.faces), unique=True))
+    wrong = _flipped(mesh, np.array(faces))
+    assert not wrong.is_winding_consistent or wrong.volume < 0
+
+    fixed = outward_wound(wrong)
+
+    assert fixed.is_winding_consistent and fixed.volume > 0
+    # Every face is the original triangle, wound as it was: the surface's own
+    # outward winding, whichever faces were turned (all of them included).
+    assert np.all(_same_triangle(np.asarray(fixed.faces), np.asarray(mesh.faces)))
+    np.testing.assert_array_equal(fixed.vertices, mesh.vertices)
+    np.testing.assert_array_equal(fixed.visual.vertex_colors, mesh.visual.vertex_colors)
+    # The input is left as it was.
+    assert not np.all(_same_triangle(np.asarray(wrong.faces), np.asarray(mesh.faces)))
+
+
+def test_sound_and_open_meshes_are_returned_as_they_are():
+    box = _box((10, 20, 30))
+    assert outward_wound(box) is box
+    # An open surface has no outside: its faces stay as they are.
+    open_box = _flipped(trimesh.Trimesh(box.vertices, box.faces[2:], process=False),
+                        np.array([0, 3]))
+    assert not open_box.is_watertight
+    assert outward_wound(open_box) is open_box

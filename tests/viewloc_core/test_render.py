@@ -14,7 +14,7 @@ from scipy.spatial.transform import Rotation
 
 from viewloc_core.camera import Camera
 from viewloc_core.errors import InvalidInputError
-from viewloc_core.mesh import load_mesh
+from viewloc_core.mesh import load_mesh, outward_wound
 from viewloc_core.pose import Pose
 from viewloc_core.render import (
     Light,
@@ -307,3 +307,22 @@ def test_platform_choice_in_a_fresh_process(platform):
     chosen, error = done.stdout.split()
     assert chosen == (platform or "egl")
     assert float(error) < 0.5
+
+
+def test_a_closed_mesh_wound_outward_again_renders_as_drawn_on_both_sides(renderer):
+    """A few faces of a closed surface wound the wrong way make the renderer
+    draw every triangle twice (both windings); wound outward again
+    (:func:`viewloc_core.mesh.outward_wound`) it is drawn once, and shows
+    the same depth and outline."""
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=40.0)
+    faces = np.array(sphere.faces)
+    wrong = np.arange(0, len(faces), 37)
+    faces[wrong] = faces[wrong][:, ::-1]
+    mis_wound = trimesh.Trimesh(sphere.vertices, faces, process=False)
+    fixed = outward_wound(mis_wound)
+    assert prepare(mis_wound).double_sided and not prepare(fixed).double_sided
+    pose = Pose(np.eye(3), np.array([10.0, -5.0, 500.0]))
+    both_sides = renderer.render_depth(prepare(mis_wound), CAMERA, pose)
+    once = renderer.render_depth(prepare(fixed), CAMERA, pose)
+    np.testing.assert_array_equal(once.mask, both_sides.mask)
+    np.testing.assert_allclose(once.depth_mm, both_sides.depth_mm, atol=0.05)
