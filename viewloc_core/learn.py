@@ -15,6 +15,7 @@ no model view (§4.1's stopping criterion).
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, fields, replace
@@ -37,6 +38,7 @@ from viewloc_core.align import (
     spread_subset,
 )
 from viewloc_core.camera import Camera
+from viewloc_core.contour_job import ContourJob
 from viewloc_core.errors import Cancelled, InvalidInputError
 from viewloc_core.features import (
     KIND_PARALLEL,
@@ -58,6 +60,8 @@ if TYPE_CHECKING:
 
 ProgressFn = Callable[[str, float], None]
 StopFn = Callable[[], bool]
+
+_LOG = logging.getLogger(__name__)
 
 #: Bits to code one grouped feature from scratch: position (2 x 7 bits at
 #: 1 px), orientation (6), scale (5), attributes (2 x 5).
@@ -335,7 +339,7 @@ def _contour_directions(config: LearningConfig) -> NDArray[np.float64]:
                                                           config.max_polar_deg)])
 
 
-def _contour_of(mesh: trimesh.Trimesh, config: LearningConfig, renderer: Any, d0: float,
+def contour_of(mesh: trimesh.Trimesh, config: LearningConfig, renderer: Any, d0: float,
                 f: float, size: int) -> ContourModel:
     """The refinement's contour model of ``mesh`` (the centred part or a
     hull) from the views of :func:`_contour_directions`, seen through
@@ -753,7 +757,9 @@ def learn_from_mesh(
     samples: list[_ViewSample] = []
     angles: list[tuple[float, float]] = []
     views_seen: list[NDArray[np.uint8]] = []
-    with Renderer() as renderer:
+    # The contour model needs none of the training views: a child process
+    # builds it meanwhile (contour_job), stopped if learning stops.
+    with Renderer() as renderer, ContourJob(centred, config, d0, f, size) as contour_job:
         # The training views render the part's own faces. Rendering them
         # from a simplification to 10,000 faces (a 160-px view shows little
         # more; the LM-O can's colour render 127 -> 27 ms) learned 7-30 %
@@ -810,7 +816,11 @@ def learn_from_mesh(
         # 3D contour points per direction of a finer sphere than training
         # needs (see contour_level), in the centred frame the poses are
         # computed in, for the pose refinement (§5.2).
-        contour = _contour_of(centred, config, renderer, d0, f, size)
+        contour = contour_job.result()
+        if contour is None:
+            _LOG.warning("contour model built after the training views: %s",
+                         contour_job.failure)
+            contour = contour_of(centred, config, renderer, d0, f, size)
         # A part whose own views do not show its creases (a dark part) is
         # fitted and scored by its outline alone (crease_visibility).
         if not creases_show(*confirmed_shares(contour, views_seen, rotations, camera, d0)):
@@ -947,7 +957,7 @@ def learn_from_images(
         # The hull's outline is the photos' own; its creases are where the
         # cones meet, not the part's, so only the outline is fitted.
         with Renderer() as renderer:
-            contour = _contour_of(hull, config, renderer, d0, f, size).outline_only().to_arrays()
+            contour = contour_of(hull, config, renderer, d0, f, size).outline_only().to_arrays()
     if progress is not None:
         progress("finishing", 1.0)
     model = _finish(clusterer, rotations, samples, angles, "images", diameter_mm, d0, f, size,
