@@ -19,10 +19,14 @@ depends on the child.
 
 from __future__ import annotations
 
+import os
 import pickle
+import shutil
 import subprocess
 import sys
 import tempfile
+import threading
+import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -38,6 +42,9 @@ _ERROR_TAIL_CHARS = 2000
 #: The package's folder, first on the child's path: the child runs the same
 #: code as this process, whatever the working folder holds.
 _PACKAGE_ROOT = str(Path(__file__).resolve().parent.parent)
+
+#: How often the child checks that its parent still runs, seconds.
+_PARENT_POLL_S = 0.5
 
 #: The child's program: import this module from the same place and run it.
 _CHILD_CODE = ("import sys; sys.path.insert(0, sys.argv[1]); "
@@ -74,7 +81,7 @@ class ContourJob:
         try:
             self.process: subprocess.Popen[bytes] | None = subprocess.Popen(
                 [python, "-c", _CHILD_CODE, _PACKAGE_ROOT, str(folder / "job.pkl"),
-                 str(self._out)],
+                 str(self._out), str(os.getpid())],
                 stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=self._errors)
         except OSError as exc:
             self.process = None
@@ -119,12 +126,28 @@ class ContourJob:
 
 def _main() -> None:
     """The child: read the mesh and settings from the file ``argv[2]``, write
-    the contour model to the file ``argv[3]``."""
+    the contour model to the file ``argv[3]``; stop when the process
+    ``argv[4]`` (the parent) is gone."""
+    job_path, out_path, parent_pid = Path(sys.argv[2]), Path(sys.argv[3]), int(sys.argv[4])
+    threading.Thread(target=_exit_with_parent, args=(parent_pid, job_path.parent),
+                     daemon=True).start()
     from viewloc_core.learn import contour_of
     from viewloc_core.render import Renderer
 
-    job_path, out_path = Path(sys.argv[2]), Path(sys.argv[3])
     mesh, config, d0_mm, f_px, size_px = pickle.loads(job_path.read_bytes())
     with Renderer() as renderer:
         model = contour_of(mesh, config, renderer, d0_mm, f_px, size_px)
     out_path.write_bytes(pickle.dumps(model, protocol=pickle.HIGHEST_PROTOCOL))
+
+
+def _exit_with_parent(parent_pid: int, folder: Path) -> None:
+    """Wait for the parent to end, then remove the job's files and exit.
+
+    A learning job killed from outside (the job runner's terminate or kill
+    on a stop or an ignored cancellation) cannot stop its child: without
+    this the child would finish the model for no one and leave its files.
+    """
+    while os.getppid() == parent_pid:
+        time.sleep(_PARENT_POLL_S)
+    shutil.rmtree(folder, ignore_errors=True)
+    os._exit(1)

@@ -3,6 +3,11 @@ a failed child says why and learning builds the model itself, a cancelled
 one stops."""
 
 import logging
+import signal
+import subprocess
+import sys
+import textwrap
+import time
 from pathlib import Path
 
 import numpy as np
@@ -95,3 +100,36 @@ def test_cancelled_learning_stops_the_child(bracket_mesh, monkeypatch):
     process = jobs[0].process
     # Killed: 642 contour views take longer than three training views.
     assert process is not None and process.returncode is not None and process.returncode < 0
+
+
+def _running(pid: int) -> bool:
+    """Whether process ``pid`` still runs (an exited one nobody reaped is a zombie)."""
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+    except FileNotFoundError:
+        return False
+    return "\nState:\tZ" not in status
+
+
+@pytest.mark.skipif(not Path("/proc").is_dir(), reason="reads /proc")
+def test_the_child_of_a_killed_learning_stops_and_leaves_no_files():
+    """A learning job killed from outside (the job runner's SIGKILL) cannot
+    stop its child itself: the child notices and ends."""
+    parent = subprocess.run(
+        [sys.executable, "-c", textwrap.dedent("""
+            import os, signal, sys
+            import trimesh
+            from viewloc_core.contour_job import ContourJob
+            from viewloc_core.learn import LearningConfig
+            job = ContourJob(trimesh.creation.box((40.0, 30.0, 20.0)), LearningConfig(),
+                             240.0, 1500.0, 160)
+            print(job.process.pid, job._folder.name, flush=True)
+            os.kill(os.getpid(), signal.SIGKILL)
+        """)], capture_output=True, text=True, timeout=120)
+    assert parent.returncode == -signal.SIGKILL, parent.stderr
+    pid_text, folder = parent.stdout.split()
+    deadline = time.monotonic() + 30.0
+    while _running(int(pid_text)) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert not _running(int(pid_text))
+    assert not Path(folder).exists()
