@@ -69,22 +69,22 @@ class ContourJob:
 
     def __init__(self, mesh: trimesh.Trimesh, config: LearningConfig, d0_mm: float,
                  f_px: float, size_px: int, python: str = sys.executable) -> None:
-        # Files, not pipes: the parent goes on rendering at once instead of
-        # waiting for the child to start and read.
-        self._folder = tempfile.TemporaryDirectory(prefix="viewloc-contour-")
-        folder = Path(self._folder.name)
-        self._out = folder / "contour.pkl"
-        (folder / "job.pkl").write_bytes(pickle.dumps((mesh, config, d0_mm, f_px, size_px),
-                                                      protocol=pickle.HIGHEST_PROTOCOL))
-        self._errors = (folder / "errors.txt").open("wb")
+        self.process: subprocess.Popen[bytes] | None = None
         self.failure: str | None = None
+        self._folder: tempfile.TemporaryDirectory[str] | None = None
         try:
-            self.process: subprocess.Popen[bytes] | None = subprocess.Popen(
-                [python, "-c", _CHILD_CODE, _PACKAGE_ROOT, str(folder / "job.pkl"),
-                 str(self._out), str(os.getpid())],
-                stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=self._errors)
-        except OSError as exc:
-            self.process = None
+            # Files, not pipes: the parent goes on rendering at once instead
+            # of waiting for the child to start and read.
+            self._folder = tempfile.TemporaryDirectory(prefix="viewloc-contour-")
+            folder = Path(self._folder.name)
+            (folder / "job.pkl").write_bytes(pickle.dumps(
+                (mesh, config, d0_mm, f_px, size_px), protocol=pickle.HIGHEST_PROTOCOL))
+            with (folder / "errors.txt").open("wb") as errors:
+                self.process = subprocess.Popen(
+                    [python, "-c", _CHILD_CODE, _PACKAGE_ROOT, str(folder / "job.pkl"),
+                     str(folder / "contour.pkl"), str(os.getpid())],
+                    stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=errors)
+        except OSError as exc:  # no temporary folder, no such interpreter
             self.failure = f"the contour process did not start: {exc}"
             self._close()
 
@@ -97,16 +97,17 @@ class ContourJob:
     def result(self) -> ContourModel | None:
         """The contour model, once the child is done; None when it failed
         (``failure`` says why)."""
-        if self.process is None:
+        if self.process is None or self._folder is None:
             return None
+        folder = Path(self._folder.name)
         code = self.process.wait()
         try:
             if code != 0:
-                tail = (Path(self._folder.name) / "errors.txt").read_text(errors="replace")
+                tail = (folder / "errors.txt").read_text(errors="replace")
                 self.failure = (f"the contour process exited with {code}: "
                                 f"{tail[-_ERROR_TAIL_CHARS:]}")
                 return None
-            model: ContourModel = pickle.loads(self._out.read_bytes())
+            model: ContourModel = pickle.loads((folder / "contour.pkl").read_bytes())
             return model
         finally:
             self._close()
@@ -119,9 +120,9 @@ class ContourJob:
         self._close()
 
     def _close(self) -> None:
-        if not self._errors.closed:
-            self._errors.close()
+        if self._folder is not None:
             self._folder.cleanup()
+            self._folder = None
 
 
 def _main() -> None:

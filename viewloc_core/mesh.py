@@ -115,6 +115,17 @@ def mesh_diameter_mm(mesh: trimesh.Trimesh) -> float:
     return _max_pairwise_distance(hull_pts)
 
 
+def is_closed_outward(mesh: trimesh.Trimesh) -> bool:
+    """Whether ``mesh`` is a closed surface wound consistently outward.
+
+    Only such a mesh never shows the back of a face, so the renderer draws
+    it with one winding (:func:`viewloc_core.render.prepare`). Seams of UVs
+    or colours split vertices; closedness is about positions, so the mesh
+    is judged welded.
+    """
+    return _closed_outward(_welded(mesh))
+
+
 def outward_wound(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
     """``mesh`` with the faces of a closed surface wound consistently outward.
 
@@ -137,24 +148,35 @@ def outward_wound(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
         itself when it is not watertight (nothing says which side is out),
         already wound consistently outward, or cannot be made so.
     """
-    # Seams of UVs or colours split vertices; closedness is about positions.
-    welded = trimesh.Trimesh(np.asarray(mesh.vertices), np.asarray(mesh.faces), process=True)
-    if not welded.is_watertight or len(welded.faces) != len(mesh.faces):
-        return mesh
-    if welded.is_winding_consistent and welded.volume > 0:
+    welded = _welded(mesh)
+    if (not welded.is_watertight or len(welded.faces) != len(mesh.faces)
+            or _closed_outward(welded)):
         return mesh
     before = np.array(welded.faces)
     trimesh.repair.fix_winding(welded)
     trimesh.repair.fix_inversion(welded)
-    if not (welded.is_winding_consistent and welded.volume > 0):
+    if not _closed_outward(welded):
         return mesh
-    # Welding keeps the faces' order: a row that changed was reversed.
-    flip = np.any(np.asarray(welded.faces) != before, axis=1)
+    # Welding keeps the faces' order: a row that is no rotation of its
+    # former self was reversed.
+    after = np.asarray(welded.faces)
+    kept = np.any([np.all(np.roll(before, k, axis=1) == after, axis=1) for k in range(3)],
+                  axis=0)
     wound = mesh.copy()
     faces = np.array(wound.faces)
-    faces[flip] = faces[flip][:, ::-1]
+    faces[~kept] = faces[~kept][:, ::-1]
     wound.faces = faces
     return wound
+
+
+def _welded(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
+    """``mesh``'s faces over its vertices merged by position (no visuals)."""
+    return trimesh.Trimesh(np.asarray(mesh.vertices), np.asarray(mesh.faces), process=True)
+
+
+def _closed_outward(welded: trimesh.Trimesh) -> bool:
+    """Whether a welded mesh is watertight and wound consistently outward."""
+    return bool(welded.is_watertight and welded.is_winding_consistent and welded.volume > 0)
 
 
 def mesh_has_colour(mesh: trimesh.Trimesh) -> bool:

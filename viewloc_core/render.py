@@ -59,6 +59,7 @@ from numpy.typing import NDArray
 
 from viewloc_core.camera import Camera
 from viewloc_core.errors import InvalidInputError
+from viewloc_core.mesh import is_closed_outward
 from viewloc_core.pose import Pose
 
 if TYPE_CHECKING:
@@ -357,9 +358,7 @@ def prepare(
     lo, hi = vertices.min(axis=0), vertices.max(axis=0)
     centre = (lo + hi) / 2.0
     radius = float(np.sqrt(np.max(np.sum((vertices - centre) ** 2, axis=1))))
-    # Seams of UVs or colours split vertices; closedness is about positions.
-    welded = trimesh.Trimesh(vertices, faces, process=True)
-    closed = bool(welded.is_watertight and welded.is_winding_consistent and welded.volume > 0)
+    closed = is_closed_outward(mesh)
     if not closed:
         positions = np.concatenate([positions, _reverse_corners(positions)])
         normals = np.concatenate([normals, -_reverse_corners(normals)])
