@@ -3,6 +3,8 @@
 import cv2
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from tests.viewloc_core.conftest import render_scene
 from viewloc_core import view_search
@@ -280,3 +282,32 @@ def test_the_grid_is_seed_major_then_angle_then_scale():
             for f in (0.9, 1.0, 1.1):
                 assert grid[k].tolist() == [seed[0], seed[1], seed[2] + a, seed[3] * f]
                 k += 1
+
+
+def _best_entries_by_scatter(views, llr, count):
+    """The per-view choice the searches made before reading columns: a
+    scatter-maximum over all (view, similarity) entries, the first entry
+    at each view's best, the ``count`` best views' entries best first,
+    views of equal score in the order of their ids."""
+    best = np.full(int(views.max()) + 1, -np.inf)
+    np.maximum.at(best, views, llr)
+    at_best = np.flatnonzero(llr == best[views])
+    _, first = np.unique(views[at_best], return_index=True)
+    entries = at_best[first]
+    return entries[np.argsort(-llr[entries], kind="stable")[:count]]
+
+
+@given(st.data())
+def test_a_views_best_is_read_from_its_column_as_a_scatter_maximum_finds_it(data):
+    n_views = data.draw(st.integers(1, 12))
+    n_sims = data.draw(st.integers(1, 6))
+    count = data.draw(st.integers(1, 14))
+    view_ids = np.array(data.draw(st.permutations(range(3 * n_views)))[:n_views], np.int64)
+    # Few distinct values, -inf among them: ties within and across views.
+    llr = np.array(data.draw(st.lists(st.sampled_from([-np.inf, -1.0, 0.0, 0.5, 2.0]),
+                                      min_size=n_sims * n_views, max_size=n_sims * n_views)))
+    row, view_best = view_search._column_best(llr.reshape(n_sims, n_views))
+    columns = view_search._best_columns(view_ids, view_best, count)
+    entries = row[columns] * n_views + columns
+    expected = _best_entries_by_scatter(np.tile(view_ids, n_sims), llr, count)
+    assert entries.tolist() == expected.tolist()
