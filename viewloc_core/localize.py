@@ -89,7 +89,12 @@ from viewloc_core.shading import (
     surface_samples,
     visible_samples,
 )
-from viewloc_core.symmetry import Symmetries, canonical_pose, within_angle_deg
+from viewloc_core.symmetry import (
+    Symmetries,
+    any_within_angle_deg,
+    canonical_pose,
+    within_angle_deg,
+)
 from viewloc_core.view_search import (
     OTHER_SIDE_MIN_DEG,
     ViewCandidate,
@@ -1392,7 +1397,7 @@ def _best_rival(
                    + shading.near.outline_turns(base)]
     distinct = []
     for i, (view_c, sim_c, pose_c, quick_options) in enumerate(starts):
-        if any(within_angle_deg(pose_c.R_m2c, R, sym, DISTINCT_VIEW_DEG) for R in tried):
+        if any_within_angle_deg(pose_c.R_m2c, tried, sym, DISTINCT_VIEW_DEG):
             continue
         tried.append(pose_c.R_m2c)
         distinct.append((view_c, sim_c, pose_c, quick_options))

@@ -16,6 +16,7 @@ from viewloc_core.errors import InvalidInputError
 from viewloc_core.pose import Pose, rotation_angle_deg
 from viewloc_core.symmetry import (
     Symmetries,
+    any_within_angle_deg,
     canonical_pose,
     declared_symmetries,
     detect_symmetries,
@@ -389,3 +390,35 @@ def test_learning_stores_the_declared_group_and_localize_canonicalises_with_it(t
                               canonical_pose(pose, none).R_m2c) > 170
     assert rotation_angle_deg(canonical_pose(flipped, detect_symmetries(mesh)).R_m2c,
                               canonical_pose(pose, detect_symmetries(mesh)).R_m2c) < 1e-6
+
+
+@settings(max_examples=100, deadline=None)
+@given(a=st.integers(0, 10_000), n_tried=st.integers(0, 4), flip=st.booleans(),
+       continuous=st.booleans(), folds=st.integers(1, 4), turn_deg=st.floats(0.0, 360.0),
+       off_deg=st.floats(0.0, 40.0), limit=st.sampled_from([3.0, 10.0, 30.0]))
+def test_the_batch_test_holds_when_one_of_its_rotations_is_within_the_angle(
+        a, n_tried, flip, continuous, folds, turn_deg, off_deg, limit):
+    transforms = [np.eye(4)]
+    for k in range(1, folds):
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_rotvec([0, 0, 2 * np.pi * k / folds]).as_matrix()
+        transforms.append(T)
+    if flip:
+        transforms += [T @ np.diag([1.0, -1.0, -1.0, 1.0]) for T in list(transforms)]
+    sym = Symmetries(np.stack(transforms), np.array([0.0, 0, 1]) if continuous else None,
+                     np.zeros(3) if continuous else None)
+    rotations = Rotation.random(n_tried + 1, random_state=a).as_matrix()
+    R_a, tried = rotations[0], list(rotations[1:])
+    # And one that is R_a turned about the symmetry axis (an equivalent of
+    # it only when the turn is in the group), perhaps flipped, then tilted
+    # off_deg: both answers occur, and only a test that reads the
+    # symmetries gets them right.
+    flipped = np.diag([1.0, -1.0, -1.0]) if flip and a % 2 else np.eye(3)
+    tried.append(R_a @ Rotation.from_rotvec([0.0, 0.0, math.radians(turn_deg)]).as_matrix()
+                 @ flipped @ Rotation.from_rotvec([math.radians(off_deg), 0.0, 0.0]).as_matrix())
+    errors = [min_rotation_error_deg(R_a, R, sym) for R in tried]
+    assume(all(abs(e - limit) > 1e-4 for e in errors))
+    expected = any(within_angle_deg(R_a, R, sym, limit) for R in tried)
+    assert any_within_angle_deg(R_a, tried, sym, limit) == expected
+    assert expected == any(e < limit for e in errors)
+    assert not any_within_angle_deg(R_a, [], sym, limit)
