@@ -25,7 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from viewloc_core.errors import InvalidInputError
-from viewloc_core.feature_kernels import strongest_channel
+from viewloc_core.feature_kernels import stronger_gradient
 from viewloc_core.gradient import image_gradient
 from viewloc_core.refine import EdgePyramid
 
@@ -88,7 +88,6 @@ def with_colour_boundary(
             cv2.resize(post, (width, height), interpolation=cv2.INTER_LINEAR), np.float32)
         gx, gy = image_gradient(level_post)
         # The image's gradient first: it stays on ties.
-        strongest_x, strongest_y = strongest_channel(np.dstack([grad[..., 0], w * gx]),
-                                                     np.dstack([grad[..., 1], w * gy]))
-        merged.append(np.asarray(cv2.merge([strongest_x, strongest_y]), dtype=np.float32))
+        merged.append(stronger_gradient(np.ascontiguousarray(grad, np.float32),
+                                        np.ascontiguousarray(gx), np.ascontiguousarray(gy), w))
     return EdgePyramid(merged, edges.width, edges.height)

@@ -62,6 +62,43 @@ def strongest_channel(
     return gx, gy
 
 
+
+@njit(cache=True, nogil=True)
+def stronger_gradient(grad: F32, gx: F32, gy: F32, weight: np.float32) -> F32:  # pragma: no cover
+    """Per pixel, ``grad`` or ``weight`` times ``(gx, gy)``, whichever is the
+    stronger: :func:`strongest_channel` of the two, ``grad`` first, written
+    interleaved as ``grad`` is (no stacked copies of either).
+
+    Parameters
+    ----------
+    grad : (H, W, 2) float32
+        Interleaved (∂I/∂x, ∂I/∂y).
+    gx, gy : (H, W) float32
+        The other gradient, before ``weight``.
+    weight : float32
+        Factor on ``(gx, gy)`` (the product rounded to float32, as numpy's).
+
+    Returns
+    -------
+    (H, W, 2) float32
+    """
+    h, w = gx.shape
+    out = np.empty((h, w, 2), np.float32)
+    for i in range(h):
+        for j in range(w):
+            ax = grad[i, j, 0]
+            ay = grad[i, j, 1]
+            bx = weight * gx[i, j]
+            by = weight * gy[i, j]
+            if bx * bx + by * by > ax * ax + ay * ay:
+                out[i, j, 0] = bx
+                out[i, j, 1] = by
+            else:
+                out[i, j, 0] = ax
+                out[i, j, 1] = ay
+    return out
+
+
 @njit(cache=True, nogil=True)
 def scaled_int16(
     gx: F32, gy: F32, scale: np.float32, limit: np.float32,
@@ -795,6 +832,8 @@ def warm_up() -> None:
     """Compile (or load from numba's cache) for the types the extractor passes."""
     plane = np.zeros((1, 1, 3), np.float32)
     strongest_channel(plane, plane)
+    pair = np.zeros((1, 1, 2), np.float32)
+    stronger_gradient(pair, plane[..., 0].copy(), plane[..., 0].copy(), np.float32(1.0))
     grey = np.zeros((1, 1), np.float32)
     scaled_int16(grey, grey, np.float32(1.0), np.float32(1.0))
     one = np.zeros(1)

@@ -16,6 +16,7 @@ from viewloc_core.feature_kernels import (
     parallel_pair_parts,
     piece_chunks,
     scaled_int16,
+    stronger_gradient,
     strongest_channel,
 )
 
@@ -45,6 +46,26 @@ def test_strongest_channel_equals_the_opencv_form_with_ties_to_the_first():
     expected = _opencv_strongest_channel(gx3, gy3)
     np.testing.assert_array_equal(got[0], expected[0])
     np.testing.assert_array_equal(got[1], expected[1])
+
+
+
+def test_the_stronger_of_two_gradients_is_the_stronger_channel_of_their_stack():
+    # What the colour boundary's merge computed before: weight times the
+    # second gradient in numpy, both stacked as channels, the first on ties.
+    rng = np.random.default_rng(1)
+    grad = rng.normal(size=(30, 40, 2)).astype(np.float32)
+    gx = rng.normal(size=(30, 40)).astype(np.float32)
+    gy = rng.normal(size=(30, 40)).astype(np.float32)
+    weight = np.float32(0.7)
+    # Ties: the weighted second gradient equal to the first, turned, on a band.
+    gx[:10] = grad[:10, :, 1] / weight
+    gy[:10] = -grad[:10, :, 0] / weight
+    got = stronger_gradient(grad, gx, gy, weight)
+    sx, sy = strongest_channel(np.dstack([grad[..., 0], weight * gx]),
+                               np.dstack([grad[..., 1], weight * gy]))
+    np.testing.assert_array_equal(got, np.dstack([sx, sy]))
+    assert (got[:10] == grad[:10]).mean() > 0.2  # ties occur and go to the first
+    assert not np.array_equal(got, grad)
 
 
 def test_scaled_int16_equals_numpy_clip_and_cast():
