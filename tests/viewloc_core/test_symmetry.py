@@ -198,6 +198,20 @@ def test_canonical_pose_is_the_same_for_all_equivalents(q, theta, flip):
     assert min_rotation_error_deg(R, R @ S, sym) < 1e-5
 
 
+def _about_z(folds: int, flip: bool, continuous: bool) -> Symmetries:
+    """The group of an n-fold axis along z (or a continuous one), with the
+    half turn about x that flips it when ``flip``."""
+    transforms = [np.eye(4)]
+    for k in range(1, folds):
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_rotvec([0, 0, 2 * np.pi * k / folds]).as_matrix()
+        transforms.append(T)
+    if flip:
+        transforms += [T @ np.diag([1.0, -1.0, -1.0, 1.0]) for T in list(transforms)]
+    return Symmetries(np.stack(transforms), np.array([0.0, 0, 1]) if continuous else None,
+                      np.zeros(3) if continuous else None)
+
+
 @settings(max_examples=60, deadline=None)
 @given(a=st.integers(0, 10_000), b=st.integers(0, 10_000), flip=st.booleans(),
        continuous=st.booleans(), folds=st.integers(1, 6))
@@ -207,15 +221,7 @@ def test_min_rotation_error_is_the_angle_to_the_nearest_equivalent(a, b, flip, c
     # flip: the error is the angle to the symmetric equivalent of the
     # truth closest to the estimate, which canonical_pose picks, and no
     # sampled equivalent is closer.
-    transforms = [np.eye(4)]
-    for k in range(1, folds):
-        T = np.eye(4)
-        T[:3, :3] = Rotation.from_rotvec([0, 0, 2 * np.pi * k / folds]).as_matrix()
-        transforms.append(T)
-    if flip:
-        transforms += [T @ np.diag([1.0, -1.0, -1.0, 1.0]) for T in list(transforms)]
-    sym = Symmetries(np.stack(transforms), np.array([0.0, 0, 1]) if continuous else None,
-                     np.zeros(3) if continuous else None)
+    sym = _about_z(folds, flip, continuous)
     R_est = Rotation.random(random_state=a).as_matrix()
     R_gt = Rotation.random(random_state=b).as_matrix()
     nearest = canonical_pose(Pose(R_gt, np.array([0.0, 0, 500.0])), sym, R_ref=R_est)
@@ -398,15 +404,7 @@ def test_learning_stores_the_declared_group_and_localize_canonicalises_with_it(t
        off_deg=st.floats(0.0, 40.0), limit=st.sampled_from([3.0, 10.0, 30.0]))
 def test_the_batch_test_holds_when_one_of_its_rotations_is_within_the_angle(
         a, n_tried, flip, continuous, folds, turn_deg, off_deg, limit):
-    transforms = [np.eye(4)]
-    for k in range(1, folds):
-        T = np.eye(4)
-        T[:3, :3] = Rotation.from_rotvec([0, 0, 2 * np.pi * k / folds]).as_matrix()
-        transforms.append(T)
-    if flip:
-        transforms += [T @ np.diag([1.0, -1.0, -1.0, 1.0]) for T in list(transforms)]
-    sym = Symmetries(np.stack(transforms), np.array([0.0, 0, 1]) if continuous else None,
-                     np.zeros(3) if continuous else None)
+    sym = _about_z(folds, flip, continuous)
     rotations = Rotation.random(n_tried + 1, random_state=a).as_matrix()
     R_a, tried = rotations[0], list(rotations[1:])
     # And one that is R_a turned about the symmetry axis (an equivalent of
