@@ -62,7 +62,6 @@ def strongest_channel(
     return gx, gy
 
 
-
 @njit(cache=True, nogil=True)
 def stronger_gradient(grad: F32, gx: F32, gy: F32, weight: np.float32) -> F32:  # pragma: no cover
     """Per pixel, ``grad`` or ``weight`` times ``(gx, gy)``, whichever is the

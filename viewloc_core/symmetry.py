@@ -664,7 +664,6 @@ def within_angle_deg(R_a: NDArray[np.floating], R_b: NDArray[np.floating], sym: 
     return (best_trace - 1.0) / 2.0 > math.cos(math.radians(max_deg))
 
 
-
 def any_within_angle_deg(R_a: NDArray[np.floating], R_bs: Sequence[NDArray[np.floating]],
                          sym: Symmetries, max_deg: float) -> bool:
     """Whether :func:`within_angle_deg` holds for ``R_a`` and any of ``R_bs``.

@@ -483,9 +483,9 @@ def _grid_and_fit(
     feats: ImageFeatures, templates: ViewTemplates, view_ids: NDArray[np.int64], grid: F64,
     chance: ChanceRates, fitted_count: int,
 ) -> list[ViewCandidate]:
-    """Stage 2 of :func:`search_views`: ``view_ids`` on every similarity of
-    ``grid``, the best ``fitted_count`` distinct views fitted by least
-    squares; best first."""
+    """Stage 2 of :func:`search_views`: ``view_ids`` (distinct) on every
+    similarity of ``grid``, the best ``fitted_count`` of them fitted by
+    least squares; best first."""
     if not len(view_ids):
         return []
     views = np.tile(view_ids, len(grid))

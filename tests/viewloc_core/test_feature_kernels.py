@@ -48,7 +48,6 @@ def test_strongest_channel_equals_the_opencv_form_with_ties_to_the_first():
     np.testing.assert_array_equal(got[1], expected[1])
 
 
-
 def test_the_stronger_of_two_gradients_is_the_stronger_channel_of_their_stack():
     # What the colour boundary's merge computed before: weight times the
     # second gradient in numpy, both stacked as channels, the first on ties.
