@@ -35,6 +35,7 @@ from numba import njit
 from numpy.typing import NDArray
 from scipy import ndimage
 
+from viewloc_core.both_cores import each_on_both, over_halves
 from viewloc_core.camera import Camera, undistort
 from viewloc_core.mesh_simplify import simplified
 from viewloc_core.pose import Pose
@@ -101,6 +102,10 @@ SEARCH_HALF_SIDE_SHARE = 0.75
 #: part's depth error median 5.1 / 5.1 -> 2.7 / 2.8 mm (the bracket's 7.8 /
 #: 7.8 -> 7.0 / 8.0); learning 7 -> 10-11 s.
 HULL_MAX_FACES = 15_000
+
+#: Fewer grid points than this are carved on one core: handing half of them
+#: to the other costs more than it saves.
+MIN_SPLIT_POINTS = 20_000
 
 #: Smoothing (voxels) of the carved occupancy before the surface is
 #: extracted: marching cubes on a 0/1 grid leaves a staircase of 45° facets
@@ -354,8 +359,13 @@ def visual_hull(masks: Sequence[NDArray[np.generic] | None], poses: Sequence[Pos
     def carve(lo: NDArray[np.float64], hi: NDArray[np.float64], step: float,
               ) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
         points, shape = _grid(lo, hi, step)
-        kept = _kept(points, rotations, translations, camera.fx, camera.fy, camera.cx,
-                     camera.cy, mask_bits, camera.width, tolerance)
+
+        def kept_of(first: int, stop: int) -> tuple[NDArray[np.bool_]]:
+            return (_kept(points[first:stop], rotations, translations, camera.fx, camera.fy,
+                          camera.cx, camera.cy, mask_bits, camera.width, tolerance),)
+
+        # The points are independent: half of them on each core.
+        kept = np.asarray(over_halves(len(points), kept_of, MIN_SPLIT_POINTS)[0], np.bool_)
         return kept.reshape(shape), points[kept]
 
     half = SEARCH_HALF_SIDE_SHARE * diameter_mm
@@ -378,9 +388,17 @@ def visual_hull(masks: Sequence[NDArray[np.generic] | None], poses: Sequence[Pos
     # that cut a box's edges back by over a pixel. Only outlines carve here
     # (holes filled): a hole a single mask has in its middle would bore a
     # tunnel through the hull.
-    inside = ~_outline_cuts(kept, rotations, translations, camera.fx, camera.fy, camera.cx,
-                            camera.cy, outline_bits, camera.width,
-                            int(TRUSTED_MISS_SHARE * len(kept)))
+    max_cut = int(TRUSTED_MISS_SHARE * len(kept))
+
+    def cuts_of(first: int, stop: int) -> NDArray[np.bool_]:
+        return _outline_cuts(kept, rotations[first:stop], translations[first:stop], camera.fx,
+                             camera.fy, camera.cx, camera.cy, outline_bits[first:stop],
+                             camera.width, max_cut)
+
+    # Each mask cuts on its own: half of the masks on each core.
+    middle = len(views) // 2
+    inside = ~np.logical_or(*each_on_both(lambda span: cuts_of(*span),
+                                          [(0, middle), (middle, len(views))]))
     occupied[occupied] = inside
     kept = kept[inside]
     if len(kept) < 8:

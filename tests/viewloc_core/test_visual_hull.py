@@ -226,3 +226,34 @@ def test_photos_through_a_distorting_lens_carve_the_same_hull():
     # Read as if pinhole, the same masks carve another shape.
     wrong = vh.visual_hull(masks, poses, CAMERA, 130.0)
     assert wrong is None or abs(wrong.volume / ideal.volume - 1.0) > 0.05
+
+
+def test_carving_split_over_points_and_masks_is_carving_at_once():
+    """The hull is carved on both cores, half of the points or of the masks
+    on each: the same points are kept and cut as by one call over all."""
+    box = trimesh.creation.box(extents=(70.0, 40.0, 55.0))
+    box.apply_transform(trimesh.transformations.euler_matrix(*np.radians((25.0, -40.0, 60.0))))
+    masks, poses = _photos(box, level=1)
+    packed = [vh._packed(m) for m in masks]
+    mask_bits = np.stack([p[0] for p in packed])
+    outline_bits = np.stack([p[1] for p in packed])
+    rotations = np.stack([p.R_m2c for p in poses])
+    translations = np.stack([p.t_m2c for p in poses])
+    points, _ = vh._grid(np.full(3, -45.0), np.full(3, 45.0), 3.0)
+    camera = (CAMERA.fx, CAMERA.fy, CAMERA.cx, CAMERA.cy)
+    kept = vh._kept(points, rotations, translations, *camera, mask_bits, CAMERA.width, 1)
+    at = len(points) // 3
+    parts = [vh._kept(points[a:b], rotations, translations, *camera, mask_bits, CAMERA.width, 1)
+             for a, b in ((0, at), (at, len(points)))]
+    np.testing.assert_array_equal(np.concatenate(parts), kept)
+    inside = points[kept]
+    # Some masks' outlines cut their few points, some cut too many and spare them.
+    max_cut = 40
+    cut = vh._outline_cuts(inside, rotations, translations, *camera, outline_bits, CAMERA.width,
+                           max_cut)
+    views = len(masks) // 2
+    split = [vh._outline_cuts(inside, rotations[a:b], translations[a:b], *camera,
+                              outline_bits[a:b], CAMERA.width, max_cut)
+             for a, b in ((0, views), (views, len(masks)))]
+    np.testing.assert_array_equal(split[0] | split[1], cut)
+    assert 0 < kept.sum() < len(points) and 0 < cut.sum() < len(inside)
