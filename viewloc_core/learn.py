@@ -340,7 +340,7 @@ def _contour_directions(config: LearningConfig) -> NDArray[np.float64]:
 
 
 def contour_of(mesh: trimesh.Trimesh, config: LearningConfig, renderer: Any, d0: float,
-                f: float, size: int) -> ContourModel:
+               f: float, size: int) -> ContourModel:
     """The refinement's contour model of ``mesh`` (the centred part or a
     hull) from the views of :func:`_contour_directions`, seen through
     :func:`contour_render_mesh`."""

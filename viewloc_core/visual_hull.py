@@ -390,15 +390,13 @@ def visual_hull(masks: Sequence[NDArray[np.generic] | None], poses: Sequence[Pos
     # tunnel through the hull.
     max_cut = int(TRUSTED_MISS_SHARE * len(kept))
 
-    def cuts_of(first: int, stop: int) -> NDArray[np.bool_]:
-        return _outline_cuts(kept, rotations[first:stop], translations[first:stop], camera.fx,
-                             camera.fy, camera.cx, camera.cy, outline_bits[first:stop],
-                             camera.width, max_cut)
+    def cuts_of(masks: slice) -> NDArray[np.bool_]:
+        return _outline_cuts(kept, rotations[masks], translations[masks], camera.fx, camera.fy,
+                             camera.cx, camera.cy, outline_bits[masks], camera.width, max_cut)
 
     # Each mask cuts on its own: half of the masks on each core.
     middle = len(views) // 2
-    inside = ~np.logical_or(*each_on_both(lambda span: cuts_of(*span),
-                                          [(0, middle), (middle, len(views))]))
+    inside = ~np.logical_or(*each_on_both(cuts_of, [slice(0, middle), slice(middle, None)]))
     occupied[occupied] = inside
     kept = kept[inside]
     if len(kept) < 8:
