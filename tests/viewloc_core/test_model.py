@@ -55,3 +55,17 @@ def test_symmetries_round_trip_and_form_a_group(bracket_model):
     assert isinstance(group, Symmetries) and group.is_continuous
     np.testing.assert_array_equal(group.continuous_offset, [0.0, 0.0, 5.0])
     np.testing.assert_array_equal(back.symmetries, sym.symmetries)
+
+
+def test_a_models_symmetry_group_is_built_once_and_a_changed_model_gets_its_own(bracket_model):
+    from dataclasses import replace
+
+    group = bracket_model.symmetry_group()
+    assert bracket_model.symmetry_group() is group
+    assert len(group.discrete) == 1 and not group.is_continuous
+    flip = np.diag([1.0, -1.0, -1.0, 1.0])
+    flipped = replace(bracket_model, symmetries=np.stack([np.eye(4), flip]))
+    other = flipped.symmetry_group()
+    assert other is not group and flipped.symmetry_group() is other
+    np.testing.assert_array_equal(other.discrete, flipped.symmetries)
+    assert bracket_model.symmetry_group() is group
