@@ -6,6 +6,7 @@ x to the right, y down; the camera looks along +z.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 from typing import Any
@@ -29,6 +30,24 @@ PRINCIPAL_POINT_MARGIN_SIDES = 10.0
 #: have |k| up to tens (rational models), |p| below 1; p1 = 1e10 made the
 #: pose's Jacobian singular.
 MAX_DISTORTION_COEFFICIENT = 1e4
+#: The lens model must take every pixel of the image back to one viewing
+#: ray: solved for the ray and distorted again, a pixel must come back
+#: within this many pixels, where the model keeps the image's orientation
+#: (no fold). Coefficients within MAX_DISTORTION_COEFFICIENT can still
+#: fold the image or leave its corners with no ray at all (a denominator
+#: of the rational model reaching 0: a projected pose became NaN and the
+#: request a server error); a calibrated lens never does within the image
+#: it was calibrated on (OpenCV's sample calibration, wide-angle and
+#: rational models: round trips within 1e-9 px).
+DISTORTION_ROUND_TRIP_PX = 0.5
+#: Iterations (at most) and the step at which OpenCV's undistortion stops.
+#: Its default stops after a few: through the corner pixel of a lens seeing
+#: 110° across (f = 300 px at 640x480, k1 = -0.28, k2 = 0.07) the ray was
+#: 38 px off, after 20 iterations 4e-8 px.
+_UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
+#: Pixels along each side of the image, and every second of them across
+#: it, at which the lens model is checked.
+_DISTORTION_CHECK_STEPS = 16
 
 
 @dataclass(frozen=True, slots=True)
@@ -86,6 +105,11 @@ class Camera:
             raise InvalidCameraError(
                 f"dist coefficients must be at most {MAX_DISTORTION_COEFFICIENT:g} in "
                 "magnitude", "dist")
+        if self.has_distortion:
+            problem = _distortion_problem(self.fx, self.fy, self.cx, self.cy, self.width,
+                                          self.height, tuple(float(c) for c in self.dist))
+            if problem is not None:
+                raise InvalidCameraError(problem, "dist")
 
     @property
     def K(self) -> NDArray[np.float64]:
@@ -192,7 +216,8 @@ class Camera:
         import cv2
 
         und = cv2.undistortPoints(
-            uv.reshape(-1, 1, 2), self.K, np.asarray(self.dist, dtype=np.float64), P=self.K
+            uv.reshape(-1, 1, 2), self.K, np.asarray(self.dist, dtype=np.float64), P=self.K,
+            criteria=_UNDISTORT_CRITERIA,
         )
         return und.reshape(-1, 2).astype(np.float64)
 
@@ -229,6 +254,77 @@ def _distort(
     xd = xn * radial + 2 * p1 * xn * yn + p2 * (r2 + 2 * xn * xn)
     yd = yn * radial + p1 * (r2 + 2 * yn * yn) + 2 * p2 * xn * yn
     return xd, yd
+
+
+def _check_pixels(width: int, height: int) -> NDArray[np.float64]:
+    """(N, 2) pixels at which a lens model is checked: along the image's
+    border, where distortion is strongest, and on a grid across it."""
+    steps = np.linspace(0.0, 1.0, _DISTORTION_CHECK_STEPS + 1)
+    xs, ys = (width - 1) * steps, (height - 1) * steps
+    border = np.concatenate([
+        np.stack([xs, np.zeros_like(xs)], axis=1),
+        np.stack([xs, np.full_like(xs, height - 1)], axis=1),
+        np.stack([np.zeros_like(ys), ys], axis=1),
+        np.stack([np.full_like(ys, width - 1), ys], axis=1),
+    ])
+    grid = np.stack(np.meshgrid(xs[::2], ys[::2]), axis=-1).reshape(-1, 2)
+    return np.concatenate([border, grid])
+
+
+def _distortion_jacobian(
+    xn: NDArray[np.float64], yn: NDArray[np.float64], dist: tuple[float, ...],
+) -> tuple[NDArray[np.float64], ...]:
+    """The distorted coordinates of normalised points and the distortion's
+    (2, 2) Jacobian there, by forward differences: ``xd, yd, j11, j12, j21,
+    j22``, each (N,)."""
+    step = 1e-7
+    xd, yd = _distort(xn, yn, dist)
+    ax, ay = _distort(xn + step, yn, dist)
+    bx, by = _distort(xn, yn + step, dist)
+    return xd, yd, (ax - xd) / step, (bx - xd) / step, (ay - yd) / step, (by - yd) / step
+
+
+@functools.lru_cache(maxsize=256)
+def _distortion_problem(fx: float, fy: float, cx: float, cy: float, width: int, height: int,
+                        dist: tuple[float, ...]) -> str | None:
+    """Why the lens model does not take the image's pixels one to one back
+    to viewing rays (see DISTORTION_ROUND_TRIP_PX), or None when it does.
+
+    Each checked pixel's ray is solved for by Newton's method from OpenCV's
+    undistortion (whose fixed number of steps stops short on strong
+    lenses) and distorted again. Cached: a service sees the same few
+    cameras over and over, and the check costs milliseconds.
+    """
+    pixels = _check_pixels(width, height)
+    target = np.stack([(pixels[:, 0] - cx) / fx, (pixels[:, 1] - cy) / fy], axis=1)
+    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    with np.errstate(all="ignore"):
+        start = cv2.undistortPoints(pixels.reshape(-1, 1, 2), K,
+                                    np.asarray(dist, np.float64)).reshape(-1, 2)
+        xn, yn = np.where(np.isfinite(start), start, target).T
+        for _ in range(30):
+            xd, yd, j11, j12, j21, j22 = _distortion_jacobian(xn, yn, dist)
+            rx, ry = xd - target[:, 0], yd - target[:, 1]
+            if float(np.max(np.abs(rx) + np.abs(ry))) < 1e-12:
+                break
+            det = j11 * j22 - j12 * j21
+            xn = xn - (j22 * rx - j12 * ry) / det
+            yn = yn - (j11 * ry - j21 * rx) / det
+        xd, yd, j11, j12, j21, j22 = _distortion_jacobian(xn, yn, dist)
+        miss_px = np.hypot(fx * (xd - target[:, 0]), fy * (yd - target[:, 1]))
+        det = j11 * j22 - j12 * j21
+    worst = int(np.argmax(np.where(np.isfinite(miss_px), miss_px, np.inf)))
+    if not miss_px[worst] <= DISTORTION_ROUND_TRIP_PX:
+        u, v = pixels[worst]
+        return (f"the distortion coefficients leave pixel ({u:.0f}, {v:.0f}) of the "
+                f"{width}x{height} image without a viewing ray (the lens model does not "
+                "reach it)")
+    folded = np.flatnonzero(~(det > 0.0))
+    if len(folded):
+        u, v = pixels[folded[0]]
+        return (f"the distortion coefficients fold the {width}x{height} image over at "
+                f"pixel ({u:.0f}, {v:.0f}) (two viewing rays would meet there)")
+    return None
 
 
 def undistort(

@@ -141,6 +141,11 @@ def test_bad_input_is_4xx_problem_json_and_leaves_the_store_intact(
             (c.post(loc, files={"image": image},
                     data={"camera": json.dumps({**CAMERA, "dist": [0, 0, 1e10, 0]})}),
              422, "camera.dist"),
+            # Each coefficient within bounds, yet the rational model's
+            # denominator reaches 0 in the image: a projected pose was NaN (500).
+            (c.post(loc, files={"image": image},
+                    data={"camera": json.dumps({**CAMERA, "dist": [1000.0] * 8})}),
+             422, "camera.dist"),
             (c.post(loc, files={"image": image},
                     data={"camera": cam, "options": json.dumps({"max_detections": 0})}),
              422, "options.max_detections"),
