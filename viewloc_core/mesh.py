@@ -45,6 +45,14 @@ MAX_DIAMETER_MM = 100_000.0
 #: smallest parts machine vision places (01005 chips) are 0.4 mm long.
 MIN_DIAMETER_MM = 0.1
 
+#: Farthest a mesh's vertex may lie from its origin, in diameters of the
+#: part. The model keeps its vertices in float32 (7 digits): a part this far
+#: out keeps them to about a thousandth of its size. A triangle drawn at
+#: 1e39 mm overflowed float32 to infinity, and every localization of it,
+#: and every all-object one beside it, answered 500; a box moved 1e30 mm
+#: away lost its size to float64 rounding (45.8 mm across came out 22.4).
+MAX_ORIGIN_DISTANCE_DIAMETERS = 10_000.0
+
 _FIELD = "mesh"
 
 
@@ -78,8 +86,9 @@ def load_mesh(
     InvalidMeshError
         ``field="mesh"`` when the type is unknown, the bytes do not parse, or
         the mesh has no faces, non-finite vertices, zero extent, more than
-        :data:`MAX_FACES` faces or a diameter above :data:`MAX_DIAMETER_MM`
-        or below :data:`MIN_DIAMETER_MM`.
+        :data:`MAX_FACES` faces, a diameter above :data:`MAX_DIAMETER_MM`
+        or below :data:`MIN_DIAMETER_MM`, or vertices farther from the origin
+        than :data:`MAX_ORIGIN_DISTANCE_DIAMETERS` diameters.
     """
     if units not in UNIT_TO_MM:
         raise InvalidInputError(
@@ -306,6 +315,14 @@ def _check_size(mesh: trimesh.Trimesh) -> None:
         raise InvalidMeshError(
             f"the mesh is {diameter:.3g} mm across, less than the limit of "
             f"{MIN_DIAMETER_MM} mm; check the units (a mesh in metres needs units \"m\")",
+            _FIELD,
+        )
+    farthest = float(np.max(np.linalg.norm(np.asarray(mesh.vertices), axis=1)))
+    if farthest > MAX_ORIGIN_DISTANCE_DIAMETERS * diameter:
+        raise InvalidMeshError(
+            f"the mesh lies up to {farthest:.3g} mm from its origin, more than "
+            f"{MAX_ORIGIN_DISTANCE_DIAMETERS:g} times its size ({diameter:.3g} mm): its "
+            "coordinates cannot be kept precisely; move the part near its origin",
             _FIELD,
         )
 

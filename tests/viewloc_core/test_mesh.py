@@ -148,6 +148,24 @@ def test_degenerate_and_absurd_meshes_are_refused(monkeypatch):
     _expect_mesh_error(_export(_box(), "ply"), "ply", "faces, more than")
 
 
+def test_a_part_drawn_far_from_its_origin_is_refused_and_one_near_it_kept():
+    # A triangle at 1e39 mm overflowed the model's float32 vertices (every
+    # localization of it answered 500); a box 1e30 mm out lost its size to
+    # rounding. Both are refused, naming the mesh.
+    with pytest.raises(InvalidMeshError, match="from its origin") as err:
+        load_mesh(b"v 1e39 0 0\nv 1e39 10 0\nv 1e39 0 10\nf 1 2 3\n", file_type="obj")
+    assert err.value.field == "mesh"
+    moved = _box()
+    moved.apply_translation((1e30, 0.0, 0.0))
+    _expect_mesh_error(_export(moved, "ply"), "ply", "from its origin")
+    # 9,000 diameters out: kept, at its size.
+    near = _box()
+    diameter = float(np.linalg.norm(EXTENTS))
+    near.apply_translation((9_000.0 * diameter, 0.0, 0.0))
+    kept = load_mesh(_export(near, "ply"), file_type="ply")
+    np.testing.assert_allclose(kept.extents, EXTENTS, rtol=1e-6)
+
+
 def test_unknown_type_and_units_name_their_field():
     _expect_mesh_error(b"solid x", "dae", "unknown mesh type")
     _expect_mesh_error(b"solid x", None, "file_type is required")
