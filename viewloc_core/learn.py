@@ -260,6 +260,16 @@ class LearningConfig:
         for name, ok, message in checks:
             if not ok:
                 raise InvalidInputError(message, f"learning.{name}")
+        # The levels and the polar limit are each in range, yet together they
+        # can leave no view: learning then failed in its job, not here
+        # (level 0 within 30° has none).
+        for name, level in (("max_polar_deg", self.max_level),
+                            ("contour_level", self.contour_level)):
+            if not view_directions(level, self.max_polar_deg):
+                raise InvalidInputError(
+                    f"view-sphere level {level} has no view within max_polar_deg "
+                    f"{self.max_polar_deg:g}; raise the level or the polar limit",
+                    f"learning.{name}")
 
 
 @dataclass(frozen=True, slots=True)

@@ -55,6 +55,23 @@ def test_config_from_dict_validates_fields():
         assert err.value.field == "learning.max_faces"
 
 
+@pytest.mark.parametrize(("options", "field"), [
+    # Each option in range, together no view: the job failed after upload.
+    ({"max_level": 0, "min_level": 0, "max_polar_deg": 30}, "learning.max_polar_deg"),
+    ({"contour_level": 0, "max_polar_deg": 30}, "learning.contour_level"),
+])
+def test_options_that_together_leave_no_view_are_refused(options, field):
+    with pytest.raises(InvalidInputError) as err:
+        LearningConfig.from_dict(options)
+    assert err.value.field == field
+    assert "no view" in err.value.message
+    # One level finer, a view is left: accepted.
+    finer = {k: v + 1 if k.endswith("level") else v for k, v in options.items()}
+    config = LearningConfig.from_dict(finer)
+    assert view_directions(config.max_level, config.max_polar_deg)
+    assert view_directions(config.contour_level, config.max_polar_deg)
+
+
 def test_a_dense_mesh_is_learned_from_its_simplification(renderer, bracket_mesh, bracket_model):
     # The bracket cut into 9,216 faces (the same shape): learned from 1,000
     # of them, in the uploaded mesh's own frame and size, and still fitted
