@@ -77,7 +77,8 @@ def load_mesh(
     -------
     trimesh.Trimesh
         Vertices (V, 3) float64 in mm, faces (F, 3) int64, duplicate vertices
-        merged, colours (``visual``) kept where the file has them.
+        merged and repeated faces dropped, colours (``visual``) kept where the
+        file has them.
 
     Raises
     ------
@@ -99,6 +100,7 @@ def load_mesh(
     mesh = _as_single_mesh(loaded, kind)
     _check_raw(mesh, kind)
     mesh.merge_vertices()
+    _drop_repeated_faces(mesh)
     scale = UNIT_TO_MM[units]
     if scale != 1.0:
         mesh.apply_scale(scale)
@@ -298,6 +300,25 @@ def _check_raw(mesh: trimesh.Trimesh, kind: str) -> None:
                                _FIELD)
     if faces.min() < 0 or faces.max() >= len(vertices):
         raise InvalidMeshError("the mesh has faces referring to missing vertices", _FIELD)
+
+
+def _drop_repeated_faces(mesh: trimesh.Trimesh) -> None:
+    """Drop the faces that repeat an earlier one with the same winding, in
+    place (a face and its reverse both stay: a surface drawn double-sided).
+
+    An OBJ of two faces written a million times over was accepted, then its
+    learning failed: simplified to the face budget, nothing was left.
+    """
+    faces = np.asarray(mesh.faces)
+    # Each triangle turned to start at its smallest index: the same face
+    # with the same winding gives the same row.
+    first = np.argmin(faces, axis=1)[:, None]
+    canonical = np.take_along_axis(faces, (first + np.arange(3)[None, :]) % 3, axis=1)
+    _, kept = np.unique(canonical, axis=0, return_index=True)
+    if len(kept) < len(faces):
+        keep = np.zeros(len(faces), bool)
+        keep[kept] = True
+        mesh.update_faces(keep)
 
 
 def _check_size(mesh: trimesh.Trimesh) -> None:

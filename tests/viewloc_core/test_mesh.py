@@ -223,3 +223,18 @@ def test_sound_and_open_meshes_are_returned_as_they_are():
                         np.array([0, 3]))
     assert not open_box.is_watertight
     assert outward_wound(open_box) is open_box
+
+
+def test_repeated_faces_are_dropped_and_a_double_sided_surface_kept():
+    box = _box()
+    repeated = trimesh.Trimesh(box.vertices, np.concatenate([box.faces] * 50), process=False)
+    loaded = load_mesh(_export(repeated, "ply"), file_type="ply")
+    assert len(loaded.faces) == len(box.faces)
+    np.testing.assert_allclose(loaded.extents, EXTENTS)
+    # The same faces turned to start at another corner repeat them too; the
+    # reversed ones (the other side of the surface) do not.
+    turned = np.roll(box.faces, 1, axis=1)
+    both_sides = trimesh.Trimesh(box.vertices, np.concatenate(
+        [box.faces, turned, box.faces[:, ::-1]]), process=False)
+    loaded = load_mesh(_export(both_sides, "ply"), file_type="ply")
+    assert len(loaded.faces) == 2 * len(box.faces)
