@@ -2,17 +2,21 @@
 
 The pixel count is read from the file header before anything is decoded, so
 a small file that claims gigapixels (a decompression bomb) is refused without
-allocating its pixels.
+allocating its pixels. A file whose header tells neither our parsers nor
+Pillow its size is refused too: the decoder would find the size only by
+allocating it.
 """
 
 from __future__ import annotations
 
+import io
 import struct
 from typing import Any
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
+from PIL import BmpImagePlugin, ImageFile, JpegImagePlugin, PngImagePlugin, TiffImagePlugin
 
 # The from-images task's lens removal lives with the camera model; kept
 # importable from here.
@@ -105,6 +109,64 @@ def header_size(data: bytes, fmt: str) -> tuple[int, int] | None:
         return None
 
 
+# The plugin classes rather than PIL.Image.open: open() refuses (or warns
+# about) sizes beyond Pillow's own global pixel limit before telling the
+# size, and the limit that matters here is the caller's max_pixels.
+_PILLOW_READERS: dict[str, type[ImageFile.ImageFile]] = {
+    "png": PngImagePlugin.PngImageFile,
+    "jpeg": JpegImagePlugin.JpegImageFile,
+    "tiff": TiffImagePlugin.TiffImageFile,
+    "bmp": BmpImagePlugin.BmpImageFile,
+}
+
+
+#: How much of a PNG, JPEG or BMP file Pillow is shown. Their headers come
+#: first, but Pillow walks PNG chunks and JPEG segments in Python: a crafted
+#: 32 MB file of tiny ones kept it busy 15-18 s. A TIFF is shown whole (its
+#: directory may lie anywhere; Pillow reads one directory and its values
+#: lazily: 0.1 s for 30 MB).
+PILLOW_HEADER_BYTES = 1 << 20
+
+
+def pillow_header_size(data: bytes, fmt: str) -> tuple[int, int] | None:
+    """(width, height) as Pillow reads it from the header, or None when it cannot.
+
+    Pillow reads only the header here (the pixels are decoded lazily, and
+    never asked for).
+    """
+    shown = data if fmt == "tiff" else data[:PILLOW_HEADER_BYTES]
+    try:
+        with _PILLOW_READERS[fmt](io.BytesIO(shown)) as im:
+            w, h = im.size
+    # Pillow's header readers fail in many ways (SyntaxError, OSError,
+    # ValueError, EOFError, struct.error, ...); to us each means the same:
+    # Pillow cannot tell the size.
+    except Exception:
+        return None
+    return int(w), int(h)
+
+
+def _refuse_unless_size_allowed(data: bytes, fmt: str, field: str, max_pixels: int) -> None:
+    """Refuse the image from its header alone: no size given, empty, or too many pixels.
+
+    Raises
+    ------
+    InvalidImageError
+        The header does not give the size (decoding would be the only way
+        to learn it), gives an empty size, or more than ``max_pixels``.
+    """
+    size = header_size(data, fmt) or pillow_header_size(data, fmt)
+    if size is None:
+        raise InvalidImageError(f"the {fmt} header does not give the image size", field)
+    w, h = size
+    if w <= 0 or h <= 0:
+        raise InvalidImageError(f"the {fmt} header gives an empty size {w}x{h}", field)
+    if w * h > max_pixels:
+        raise InvalidImageError(
+            f"image has {w}x{h} = {w * h} pixels, more than the limit {max_pixels}", field
+        )
+
+
 def decode_image(
     data: bytes, field: str, max_pixels: int, allow_alpha_drop: bool = True
 ) -> NDArray[Any]:
@@ -124,23 +186,16 @@ def decode_image(
     Raises
     ------
     InvalidImageError
-        Not one of the accepted formats, undecodable, too many pixels, or an
-        unsupported sample type (e.g. 32-bit float TIFF).
+        Not one of the accepted formats, a header that does not give the
+        size, undecodable, too many pixels, or an unsupported sample type
+        (e.g. 32-bit float TIFF).
     """
     if not data:
         raise InvalidImageError("the image file is empty", field)
     fmt = sniff_format(data)
     if fmt is None:
         raise InvalidImageError("not a PNG, JPEG, TIFF or BMP image", field)
-    size = header_size(data, fmt)
-    if size is not None:
-        w, h = size
-        if w <= 0 or h <= 0:
-            raise InvalidImageError(f"the {fmt} header gives an empty size {w}x{h}", field)
-        if w * h > max_pixels:
-            raise InvalidImageError(
-                f"image has {w}x{h} = {w * h} pixels, more than the limit {max_pixels}", field
-            )
+    _refuse_unless_size_allowed(data, fmt, field, max_pixels)
     buf = np.frombuffer(data, dtype=np.uint8)
     try:
         # UNCHANGED keeps 16-bit samples and, unlike IMREAD_COLOR, ignores

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import io
 import json
+import struct
 import time
 from typing import Any
 
@@ -10,6 +12,7 @@ import cv2
 import httpx
 import numpy as np
 import trimesh
+from PIL import Image
 
 CAMERA = {"fx": 500.0, "fy": 500.0, "cx": 159.5, "cy": 119.5}
 
@@ -29,6 +32,36 @@ def png(width: int = 320, height: int = 240, channels: int = 3, dtype: Any = np.
     ok, buf = cv2.imencode(".png", img)
     assert ok
     return bytes(buf.tobytes())
+
+
+def jpeg(width: int = 16, height: int = 16, claimed_size: tuple[int, int] | None = None,
+         stray: bytes = b"") -> bytes:
+    """A JPEG of a colour gradient, as Pillow writes it (SOI, APP0, ..., SOF0, ...).
+
+    Parameters
+    ----------
+    width, height : int
+        Size of the coded image.
+    claimed_size : (width, height), optional
+        Written into the frame header (SOF0) instead: a decompression bomb
+        when large.
+    stray : bytes
+        Put between the APP0 segment and the next marker: libjpeg skips
+        stray bytes with the warning "extraneous bytes before marker".
+    """
+    yy, xx = np.mgrid[0:height, 0:width]
+    rgb = np.stack([xx * 255 // max(width - 1, 1), yy * 255 // max(height - 1, 1),
+                    np.full_like(xx, 128)], axis=-1).astype(np.uint8)
+    buf = io.BytesIO()
+    Image.fromarray(rgb).save(buf, format="JPEG", quality=95)
+    data = bytearray(buf.getvalue())
+    if claimed_size is not None:
+        sof = data.find(b"\xff\xc0")
+        data[sof + 5:sof + 9] = struct.pack(">HH", claimed_size[1], claimed_size[0])
+    assert data[2:4] == b"\xff\xe0"  # APP0 right after SOI
+    end_of_app0 = 4 + int.from_bytes(data[4:6], "big")
+    data[end_of_app0:end_of_app0] = stray
+    return bytes(data)
 
 
 def upload_mesh(client: httpx.Client, data: bytes | None = None, name: str = "box",

@@ -17,7 +17,7 @@ from openapi_spec_validator import validate
 
 from model_store import ModelStore
 from tests.app.conftest import TEST_TASKS, LiveServer, free_port
-from tests.app.helpers import CAMERA, assert_problem, box_stl, png, upload_mesh, wait_job
+from tests.app.helpers import CAMERA, assert_problem, box_stl, jpeg, png, upload_mesh, wait_job
 
 SLEEPY = {**TEST_TASKS, "learn_mesh": TEST_TASKS["sleepy"]}
 
@@ -200,6 +200,11 @@ def test_bad_input_is_4xx_problem_json_and_leaves_the_store_intact(
                 assert_problem(r, status, field)
             except AssertionError as exc:
                 raise AssertionError(f"case {i}: {exc}") from exc
+        # A decompression bomb whose frame header hides behind a stray byte is
+        # refused from its header ("W x H = N pixels"), not after decoding it.
+        bomb = jpeg(claimed_size=(30000, 30000), stray=b"\x00")
+        r = c.post(loc, files={"image": ("b.jpg", bomb, "image/jpeg")}, data={"camera": cam})
+        assert "30000x30000 = 900000000 pixels" in assert_problem(r, 422, "image")["detail"]
         # body far beyond the route limit: refused from Content-Length alone
         r = c.post(loc, files={"image": ("big.png", b"\x89PNG" + b"\x00" * 1_500_000)},
                    data={"camera": cam})

@@ -4,10 +4,12 @@
 from __future__ import annotations
 
 import io
+import struct
 from pathlib import Path
 
 import cv2
 import numpy as np
+import pytest
 from PIL import Image
 from scipy.spatial import cKDTree
 
@@ -15,8 +17,10 @@ from app.imaging import decode_image, undistort
 from app.jobs.tasks import learn_images
 from model_store import ModelStore
 from model_store.files import encode_arrays
+from tests.app.helpers import jpeg
 from tests.viewloc_core.conftest import l_bracket
 from viewloc_core.camera import Camera
+from viewloc_core.errors import InvalidImageError
 from viewloc_core.pose import Pose
 from viewloc_core.view_sphere import view_directions
 
@@ -119,3 +123,52 @@ def test_an_exif_orientation_tag_is_not_applied() -> None:
     decoded = decode_image(buf.getvalue(), "image", 10_000)
     assert decoded.shape == (40, 60, 3)
     assert decoded[:10, :20, 0].mean() > 200 and decoded[30:, 40:, 0].mean() < 50
+
+
+def _refusal(data: bytes, max_pixels: int = 10_000) -> InvalidImageError:
+    """The error decode_image refuses ``data`` with (field "image")."""
+    with pytest.raises(InvalidImageError) as info:
+        decode_image(data, "image", max_pixels)
+    assert info.value.field == "image"
+    return info.value
+
+
+def test_a_bomb_behind_a_stray_byte_is_refused_from_its_header() -> None:
+    # 634 bytes whose frame header says 30000x30000; the stray byte after
+    # APP0 made the header check give up, and decoding took 11 s and 3 GB.
+    bomb = jpeg(16, 16, claimed_size=(30000, 30000), stray=b"\x00")
+    # "W x H = N pixels" is the header check's wording; the check after
+    # decoding does not multiply out.
+    assert "30000x30000 = 900000000 pixels" in _refusal(bomb).message
+
+
+def test_a_jpeg_whose_header_gives_no_size_is_refused_undecoded() -> None:
+    data = jpeg(16, 16)
+    sof = data.find(b"\xff\xc0")
+    without_frame_header = data[:sof] + data[sof + 2 + int.from_bytes(data[sof + 2:sof + 4],
+                                                                      "big"):]
+    assert _refusal(without_frame_header).message == (
+        "the jpeg header does not give the image size")
+
+
+def _tiff_after_many_entries(width: int, height: int, pixels: bytes) -> bytes:
+    """A grey 8-bit TIFF whose directory has 513 (repeated) NewSubfileType
+    entries before the size, more than app.imaging's own parser reads;
+    libtiff reads it with a warning (tags not sorted)."""
+    entries = [(254, 4, 0)] * 513 + [(256, 3, width), (257, 3, height), (258, 3, 8),
+                                     (259, 3, 1), (262, 3, 1), (273, 4, 0), (278, 3, height),
+                                     (279, 4, len(pixels))]
+    pixels_at = 8 + 2 + 12 * len(entries) + 4
+    ifd = struct.pack("<H", len(entries)) + b"".join(
+        struct.pack("<HHIHH" if typ == 3 else "<HHII", tag, typ, 1,
+                    *((value, 0) if typ == 3 else (pixels_at if tag == 273 else value,)))
+        for tag, typ, value in entries) + struct.pack("<I", 0)
+    return b"II*\x00" + struct.pack("<I", 8) + ifd + pixels
+
+
+def test_a_size_only_pillow_can_read_is_checked_and_kept() -> None:
+    pixels = np.arange(24, dtype=np.uint8).reshape(4, 6) * 10
+    small = _tiff_after_many_entries(6, 4, pixels.tobytes())
+    np.testing.assert_array_equal(decode_image(small, "image", 10_000), pixels)
+    bomb = _tiff_after_many_entries(30000, 30000, pixels.tobytes())
+    assert "30000x30000 = 900000000 pixels" in _refusal(bomb).message
