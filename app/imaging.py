@@ -10,6 +10,7 @@ allocating it.
 from __future__ import annotations
 
 import io
+import re
 import struct
 from typing import Any
 
@@ -54,25 +55,39 @@ def _bmp_size(data: bytes) -> tuple[int, int] | None:
 
 
 _SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
+#: Markers without a length: TEM, RST0-7 and (a repeated) SOI.
+_STANDALONE = {0x01, 0xD8, *range(0xD0, 0xD8)}
+_SOS, _EOI = 0xDA, 0xD9
+#: A marker: 0xFF then a byte neither 0x00 (a stuffed 0xFF) nor 0xFF (fill).
+#: Searching for it skips what libjpeg skips between segments: stray bytes
+#: ("extraneous bytes before marker"), fill bytes and stuffed 0xFF 0x00.
+_JPEG_MARKER = re.compile(rb"\xff[^\x00\xff]")
 
 
 def _jpeg_size(data: bytes) -> tuple[int, int] | None:
+    """(width, height) from the first frame header (SOF), found as libjpeg finds it."""
     i, n = 2, len(data)
-    while i + 4 <= n:
-        if data[i] != 0xFF:
-            return None
+    while i + 1 < n:
+        # The search only when something other than a marker sits here:
+        # a crafted file of 8 million tiny segments took twice as long
+        # with a search for each.
+        if data[i] != 0xFF or data[i + 1] in (0x00, 0xFF):
+            found = _JPEG_MARKER.search(data, i)
+            if found is None:
+                return None
+            i = found.start()
         marker = data[i + 1]
-        if marker == 0xFF:  # fill byte
-            i += 1
+        i += 2
+        if marker in _STANDALONE:
             continue
-        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
-            i += 2
-            continue
-        (length,) = struct.unpack(">H", data[i + 2:i + 4])
-        if marker in _SOF and i + 9 <= n:
-            h, w = struct.unpack(">HH", data[i + 5:i + 9])
+        if marker in (_SOS, _EOI):
+            return None  # libjpeg needs the frame header before the first scan
+        # Cut short, these raise struct.error: header_size's None.
+        (length,) = struct.unpack_from(">H", data, i)
+        if marker in _SOF:
+            h, w = struct.unpack_from(">HH", data, i + 3)
             return int(w), int(h)
-        i += 2 + length
+        i += length
     return None
 
 

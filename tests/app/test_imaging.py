@@ -13,7 +13,7 @@ import pytest
 from PIL import Image
 from scipy.spatial import cKDTree
 
-from app.imaging import decode_image, undistort
+from app.imaging import decode_image, header_size, undistort
 from app.jobs.tasks import learn_images
 from model_store import ModelStore
 from model_store.files import encode_arrays
@@ -140,6 +140,16 @@ def test_a_bomb_behind_a_stray_byte_is_refused_from_its_header() -> None:
     # "W x H = N pixels" is the header check's wording; the check after
     # decoding does not multiply out.
     assert "30000x30000 = 900000000 pixels" in _refusal(bomb).message
+
+
+@pytest.mark.parametrize("stray", [b"\x00", b"junk", b"\xff\x00", b"junk\xff\xff\xff"],
+                         ids=["zero", "text", "stuffed-ff", "text-then-fill"])
+def test_what_libjpeg_skips_between_segments_our_header_parser_skips(stray: bytes) -> None:
+    plain, with_stray = jpeg(40, 30), jpeg(40, 30, stray=stray)
+    assert header_size(with_stray, "jpeg") == (40, 30)
+    decoded = decode_image(with_stray, "image", 10_000)
+    assert decoded.shape == (30, 40, 3)
+    np.testing.assert_array_equal(decoded, decode_image(plain, "image", 10_000))
 
 
 def test_a_jpeg_whose_header_gives_no_size_is_refused_undecoded() -> None:
