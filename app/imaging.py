@@ -47,11 +47,26 @@ def _png_size(data: bytes) -> tuple[int, int] | None:
     return None
 
 
+#: Length of the OS/2 BITMAPCOREHEADER, the one DIB header with 16-bit sizes.
+_BMP_CORE_HEADER_BYTES = 12
+
+
 def _bmp_size(data: bytes) -> tuple[int, int] | None:
-    if len(data) >= 26:
-        w, h = struct.unpack("<ii", data[18:26])
-        return abs(int(w)), abs(int(h))
-    return None
+    """(width, height) from the DIB header after the 14-byte file header.
+
+    The header's own length (at offset 14) tells its kind: the 12-byte OS/2
+    core header stores unsigned 16-bit sizes, the longer ones (OS/2 2.x, 16
+    to 64 bytes; Windows, 40 bytes and up) signed 32-bit sizes, the height
+    negative for rows stored top-down. Other lengths are no header at all.
+    """
+    (header_bytes,) = struct.unpack_from("<I", data, 14)
+    if header_bytes == _BMP_CORE_HEADER_BYTES:
+        w, h = struct.unpack_from("<HH", data, 18)
+    elif header_bytes >= 16:
+        w, h = struct.unpack_from("<ii", data, 18)
+    else:
+        return None
+    return abs(int(w)), abs(int(h))
 
 
 _SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}

@@ -182,3 +182,33 @@ def test_a_size_only_pillow_can_read_is_checked_and_kept() -> None:
     np.testing.assert_array_equal(decode_image(small, "image", 10_000), pixels)
     bomb = _tiff_after_many_entries(30000, 30000, pixels.tobytes())
     assert "30000x30000 = 900000000 pixels" in _refusal(bomb).message
+
+
+def _bmp(rgb: np.ndarray, header_bytes: int, top_down: bool = False) -> bytes:
+    """A 24-bit BMP of ``rgb`` with a 12-byte OS/2 core header (16-bit
+    sizes) or a 40-byte Windows info header (32-bit sizes, the height
+    negative when ``top_down``)."""
+    h, w = rgb.shape[:2]
+    pad = b"\x00" * (-3 * w % 4)
+    rows = range(h) if top_down else range(h - 1, -1, -1)
+    pixels = b"".join(rgb[y, :, ::-1].tobytes() + pad for y in rows)
+    if header_bytes == 12:
+        dib = struct.pack("<IHHHH", 12, w, h, 1, 24)
+    else:
+        dib = struct.pack("<IiiHHIIiiII", 40, w, -h if top_down else h, 1, 24, 0, len(pixels),
+                          2835, 2835, 0, 0)
+    offset = 14 + len(dib)
+    return b"BM" + struct.pack("<IHHI", offset + len(pixels), 0, 0, offset) + dib + pixels
+
+
+def test_bmp_sizes_are_read_from_either_kind_of_header() -> None:
+    rng = np.random.default_rng(1)
+    rgb = rng.integers(0, 255, (3, 5, 3), endpoint=True).astype(np.uint8)
+    # The OS/2 core header's 16-bit sizes, read as 32-bit ones, made
+    # 384x288 into 18874752x1572865 pixels and the image was refused.
+    os2 = _bmp(rgb, 12)
+    assert header_size(os2, "bmp") == (5, 3)
+    assert decode_image(os2, "image", 10_000).shape[:2] == (3, 5)
+    for windows in (_bmp(rgb, 40), _bmp(rgb, 40, top_down=True)):
+        assert header_size(windows, "bmp") == (5, 3)
+        np.testing.assert_array_equal(decode_image(windows, "image", 10_000), rgb)
