@@ -106,6 +106,25 @@ def _jpeg_size(data: bytes) -> tuple[int, int] | None:
     return None
 
 
+def _has_bmp_core_header(data: bytes) -> bool:
+    """Whether a BMP file's DIB header is the 12-byte OS/2 core header."""
+    return data[14:18] == struct.pack("<I", _BMP_CORE_HEADER_BYTES)
+
+
+def _imread_flags(data: bytes, fmt: str) -> int:
+    """How cv2.imdecode should read the file.
+
+    UNCHANGED keeps 16-bit samples and, unlike IMREAD_COLOR, ignores an
+    EXIF orientation tag: the camera's intrinsics describe the pixel grid as
+    stored (README, "Image size"). An OS/2 core-header BMP is read as COLOR
+    (a BMP has neither 16-bit samples nor EXIF): OpenCV's BMP reader types
+    every such file grey under UNCHANGED, turning a 24-bit colour image grey.
+    """
+    if fmt == "bmp" and _has_bmp_core_header(data):
+        return cv2.IMREAD_COLOR
+    return cv2.IMREAD_UNCHANGED
+
+
 def _tiff_size(data: bytes) -> tuple[int, int] | None:
     endian = "<" if data[:2] == b"II" else ">"
     if len(data) < 8:
@@ -228,10 +247,7 @@ def decode_image(
     _refuse_unless_size_allowed(data, fmt, field, max_pixels)
     buf = np.frombuffer(data, dtype=np.uint8)
     try:
-        # UNCHANGED keeps 16-bit samples and, unlike IMREAD_COLOR, ignores
-        # an EXIF orientation tag: the camera's intrinsics describe the
-        # pixel grid as stored (README, "Image size").
-        img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
+        img = cv2.imdecode(buf, _imread_flags(data, fmt))
     except cv2.error as exc:
         raise InvalidImageError(f"the {fmt} data cannot be decoded: {exc}", field) from exc
     if img is None or img.size == 0:

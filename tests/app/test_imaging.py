@@ -208,7 +208,8 @@ def test_bmp_sizes_are_read_from_either_kind_of_header() -> None:
     # 384x288 into 18874752x1572865 pixels and the image was refused.
     os2 = _bmp(rgb, 12)
     assert header_size(os2, "bmp") == (5, 3)
-    assert decode_image(os2, "image", 10_000).shape[:2] == (3, 5)
+    # In colour: OpenCV reads a core-header BMP grey unless asked for colour.
+    np.testing.assert_array_equal(decode_image(os2, "image", 10_000), rgb)
     for windows in (_bmp(rgb, 40), _bmp(rgb, 40, top_down=True)):
         assert header_size(windows, "bmp") == (5, 3)
         np.testing.assert_array_equal(decode_image(windows, "image", 10_000), rgb)
