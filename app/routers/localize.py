@@ -27,6 +27,7 @@ from app.schemas import (
     MultiLocalizeOptionsIn,
 )
 from app.serialize import detection_dict
+from model_store import ModelStore
 from model_store.errors import ObjectNotFoundError
 from viewloc_core.camera import Camera
 from viewloc_core.detection import Detection
@@ -178,6 +179,21 @@ def localize_object(
                    timing, t0)
 
 
+def _objects_to_search(store: ModelStore, object_ids: list[str] | None) -> dict[str, str | None]:
+    """The ids of the objects to search, each with the request field that named it.
+
+    Every ready object when the client named none (no field), else the
+    client's list without repeats, each id named by its first entry (the
+    index in the list as sent, not in the list without repeats).
+    """
+    if object_ids is None:
+        return {o.object_id: None for o in store.list_objects(state="ready")}
+    fields: dict[str, str | None] = {}
+    for i, oid in enumerate(object_ids):
+        fields.setdefault(oid, f"options.object_ids[{i}]")
+    return fields
+
+
 @router.post(
     "/v1/localize",
     response_model=MultiLocalizationOut,
@@ -203,17 +219,14 @@ def localize_many(
     t0 = time.perf_counter()
     timing: dict[str, float] = {}
     opts = parse_json_field(options, MultiLocalizeOptionsIn, "options")
-    if opts.object_ids is None:
-        ids = [o.object_id for o in store.list_objects(state="ready")]
-    else:
-        ids = list(dict.fromkeys(opts.object_ids))
-    for i, oid in enumerate(ids):
+    fields = _objects_to_search(store, opts.object_ids)
+    ids = list(fields)
+    for oid, field in fields.items():
         try:
             store.get_object(oid)  # a malformed id is no object either
         except ObjectNotFoundError as exc:
             # The answer names the list entry the client gave (404 problem+json
             # with its field); a ready object deleted meanwhile has none.
-            field = None if opts.object_ids is None else f"options.object_ids[{i}]"
             raise ObjectNotFoundError(exc.message, field) from exc
     img = _decode(image, settings, timing)
     cam = _camera(camera, img.shape[1], img.shape[0])

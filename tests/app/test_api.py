@@ -170,6 +170,11 @@ def test_bad_input_is_4xx_problem_json_and_leaves_the_store_intact(
                     data={"camera": cam,
                           "options": json.dumps({"object_ids": [oid, "0" * 32]})}),
              404, "options.object_ids[1]"),
+            # ... in the list as sent, repeats counted.
+            (c.post("/v1/localize", files={"image": image},
+                    data={"camera": cam,
+                          "options": json.dumps({"object_ids": [oid, oid, "0" * 32]})}),
+             404, "options.object_ids[2]"),
             (one_photo({"views": []}), 422, "spec.views"),
             (c.post("/v1/objects/from-images",
                     files=[("images", ("a.png", png(), "image/png")),
