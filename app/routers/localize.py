@@ -194,6 +194,40 @@ def _objects_to_search(store: ModelStore, object_ids: list[str] | None) -> dict[
     return fields
 
 
+def _require_named(store: ModelStore, fields: dict[str, str | None]) -> None:
+    """404 naming the list entry of the first named id that is no object.
+
+    The ready objects searched when the client named none were just listed:
+    one deleted since is skipped when the models are loaded.
+    """
+    for oid, field in fields.items():
+        if field is None:
+            continue
+        try:
+            store.get_object(oid)  # a malformed id is no object either
+        except ObjectNotFoundError as exc:
+            raise ObjectNotFoundError(exc.message, field) from exc
+
+
+def _load_models(store: ModelStore, fields: dict[str, str | None]) -> list[tuple[str, Any]]:
+    """(id, model) of each object to search.
+
+    An object deleted since it was checked or listed answers 404 naming its
+    list entry when the client named it; when the client named none it is
+    skipped, as it would not have been listed a moment later (and the client
+    cannot act on a 404 about an object it never asked for).
+    """
+    models: list[tuple[str, Any]] = []
+    for oid, field in fields.items():
+        try:
+            models.append((oid, store.load_model(oid)))
+        except ObjectNotFoundError as exc:
+            if field is None:
+                continue
+            raise ObjectNotFoundError(exc.message, field) from exc
+    return models
+
+
 @router.post(
     "/v1/localize",
     response_model=MultiLocalizationOut,
@@ -220,17 +254,11 @@ def localize_many(
     timing: dict[str, float] = {}
     opts = parse_json_field(options, MultiLocalizeOptionsIn, "options")
     fields = _objects_to_search(store, opts.object_ids)
-    ids = list(fields)
-    for oid, field in fields.items():
-        try:
-            store.get_object(oid)  # a malformed id is no object either
-        except ObjectNotFoundError as exc:
-            # The answer names the list entry the client gave (404 problem+json
-            # with its field); a ready object deleted meanwhile has none.
-            raise ObjectNotFoundError(exc.message, field) from exc
+    _require_named(store, fields)  # 404 before the image is decoded
     img = _decode(image, settings, timing)
     cam = _camera(camera, img.shape[1], img.shape[0])
-    models = [(oid, store.load_model(oid)) for oid in ids]
+    models = _load_models(store, fields)
+    ids = [oid for oid, _ in models]
     all_dets: list[Detection] = []
     drawn: list[tuple[Any, list[Detection]]] = []
     # The image's features and edge pyramid are the same for every part:

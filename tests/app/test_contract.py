@@ -6,11 +6,14 @@ import json
 from collections.abc import Callable
 from datetime import datetime
 from pathlib import Path
+from typing import Any
 
 import cv2
 import httpx
 import numpy as np
+import pytest
 
+from model_store import ModelStore
 from tests.app.conftest import LiveServer
 from tests.app.helpers import CAMERA, assert_problem, png
 from tests.app.learned import BARBELL, LearnedStore, learned_barbell
@@ -216,3 +219,55 @@ def test_a_region_and_a_depth_range_bound_where_the_part_is_looked_for(
         assert_problem(ask({"roi": {"x": 300, "y": 0, "width": 40, "height": 10}},
                            "/v1/localize"), 422, "options.roi")
         assert c.get(f"/v1/objects/{oid}").json()["state"] == "ready"
+
+
+def _another_barbell(root: Path, object_id: str) -> str:
+    """A second ready object in the store at ``root``, with the barbell's
+    model, stored through the steps a learning job takes (no server may
+    have the store open yet: its runner would claim the job)."""
+    store = ModelStore(root)
+    model = store.load_model(object_id)
+    obj, job = store.create_object(name="barbell again", source="mesh", kind="learn_mesh",
+                                   upload=BARBELL.read_bytes(), upload_suffix="bin",
+                                   upload_meta={})
+    assert store.claim_job(job.job_id, "f" * 32) is not None
+    assert store.save_model(obj.object_id, job.job_id, model)
+    return obj.object_id
+
+
+def test_an_object_deleted_while_several_are_localized(
+    learned_barbell: LearnedStore, make_server: Callable[..., LiveServer], tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    first = learned_barbell.object_id
+    second = _another_barbell(learned_barbell.copy_to(tmp_path / "var"), first)
+    # No warmer: only the requests load models, so only they delete.
+    srv = make_server(prepare_models=False)
+    store: ModelStore = srv.app.state.store
+    load_model = store.load_model
+    doomed: set[str] = set()
+
+    def deleted_first(object_id: str) -> Any:
+        """The store's load_model, after deleting a doomed object: deleted
+        after the request listed or checked it, before its model was loaded."""
+        if object_id in doomed:
+            doomed.discard(object_id)
+            store.delete_object(object_id)
+        return load_model(object_id)
+
+    monkeypatch.setattr(store, "load_model", deleted_first)
+    scene = ("s.png", _scene(SCENE_TRUTH), "image/png")
+    cam = json.dumps(CAMERA)
+    with httpx.Client(base_url=srv.url, timeout=60) as c:
+        # Named by no one: skipped, and the other object is still searched.
+        doomed.add(first)
+        r = c.post("/v1/localize", files={"image": scene}, data={"camera": cam})
+        assert r.status_code == 200, r.text
+        assert r.json()["object_ids"] == [second]
+        assert [d["object_id"] for d in r.json()["detections"]] == [second]
+        # Named by the client: 404 naming its entry in the list.
+        doomed.add(second)
+        r = c.post("/v1/localize", files={"image": scene},
+                   data={"camera": cam, "options": json.dumps({"object_ids": [second]})})
+        assert_problem(r, 404, "options.object_ids[0]")
+        assert not doomed and c.get("/v1/objects").json() == {"objects": []}
