@@ -289,28 +289,20 @@ def _distortion_problem(fx: float, fy: float, cx: float, cy: float, width: int, 
     """Why the lens model does not take the image's pixels one to one back
     to viewing rays (see DISTORTION_ROUND_TRIP_PX), or None when it does.
 
-    Each checked pixel's ray is solved for by Newton's method from OpenCV's
-    undistortion (whose fixed number of steps stops short on strong
-    lenses) and distorted again. Cached: a service sees the same few
-    cameras over and over, and the check costs milliseconds.
+    Each checked pixel is taken back to its ray as
+    :meth:`Camera.undistort_points` takes it and distorted again: what is
+    checked is what the engine will compute. Cached: a service sees the
+    same few cameras over and over, and the check costs a millisecond or
+    more.
     """
     pixels = _check_pixels(width, height)
-    target = np.stack([(pixels[:, 0] - cx) / fx, (pixels[:, 1] - cy) / fy], axis=1)
     K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
     with np.errstate(all="ignore"):
-        start = cv2.undistortPoints(pixels.reshape(-1, 1, 2), K,
-                                    np.asarray(dist, np.float64)).reshape(-1, 2)
-        xn, yn = np.where(np.isfinite(start), start, target).T
-        for _ in range(30):
-            xd, yd, j11, j12, j21, j22 = _distortion_jacobian(xn, yn, dist)
-            rx, ry = xd - target[:, 0], yd - target[:, 1]
-            if float(np.max(np.abs(rx) + np.abs(ry))) < 1e-12:
-                break
-            det = j11 * j22 - j12 * j21
-            xn = xn - (j22 * rx - j12 * ry) / det
-            yn = yn - (j11 * ry - j21 * rx) / det
-        xd, yd, j11, j12, j21, j22 = _distortion_jacobian(xn, yn, dist)
-        miss_px = np.hypot(fx * (xd - target[:, 0]), fy * (yd - target[:, 1]))
+        rays = np.asarray(cv2.undistortPoints(
+            pixels.reshape(-1, 1, 2), K, np.asarray(dist, np.float64),
+            criteria=_UNDISTORT_CRITERIA), np.float64).reshape(-1, 2)
+        xd, yd, j11, j12, j21, j22 = _distortion_jacobian(rays[:, 0], rays[:, 1], dist)
+        miss_px = np.hypot(fx * xd + cx - pixels[:, 0], fy * yd + cy - pixels[:, 1])
         det = j11 * j22 - j12 * j21
     worst = int(np.argmax(np.where(np.isfinite(miss_px), miss_px, np.inf)))
     if not miss_px[worst] <= DISTORTION_ROUND_TRIP_PX:
