@@ -79,10 +79,20 @@ _SOS, _EOI = 0xDA, 0xD9
 _JPEG_MARKER = re.compile(rb"\xff[^\x00\xff]")
 
 
+#: Segments read before the frame header, at most. Real files have a few
+#: dozen (APPn, DQT, DHT, COM); a crafted 32 MB file of 8 million empty
+#: ones kept the walk busy 6-7 s a request. Beyond this many the size is
+#: left to Pillow, which is shown the first PILLOW_HEADER_BYTES only.
+MAX_JPEG_SEGMENTS_BEFORE_FRAME = 65_536
+
+
 def _jpeg_size(data: bytes) -> tuple[int, int] | None:
-    """(width, height) from the first frame header (SOF), found as libjpeg finds it."""
+    """(width, height) from the first frame header (SOF), found as libjpeg
+    finds it; None past MAX_JPEG_SEGMENTS_BEFORE_FRAME segments."""
     i, n = 2, len(data)
-    while i + 1 < n:
+    for _ in range(MAX_JPEG_SEGMENTS_BEFORE_FRAME):
+        if i + 1 >= n:
+            return None
         # The search only when something other than a marker sits here:
         # a crafted file of 8 million tiny segments took twice as long
         # with a search for each.

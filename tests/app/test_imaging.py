@@ -13,7 +13,13 @@ import pytest
 from PIL import Image
 from scipy.spatial import cKDTree
 
-from app.imaging import decode_image, header_size, undistort
+from app.imaging import (
+    MAX_JPEG_SEGMENTS_BEFORE_FRAME,
+    PILLOW_HEADER_BYTES,
+    decode_image,
+    header_size,
+    undistort,
+)
 from app.jobs.tasks import learn_images
 from model_store import ModelStore
 from model_store.files import encode_arrays
@@ -150,6 +156,23 @@ def test_what_libjpeg_skips_between_segments_our_header_parser_skips(stray: byte
     decoded = decode_image(with_stray, "image", 10_000)
     assert decoded.shape == (30, 40, 3)
     np.testing.assert_array_equal(decoded, decode_image(plain, "image", 10_000))
+
+
+def test_the_header_walk_stops_after_a_bounded_number_of_segments() -> None:
+    # Empty comment segments (FF FE 00 02) before the frame header: valid,
+    # and libjpeg reads them, but 8 million of them kept our walk busy 6-7 s.
+    empty_comment = b"\xff\xfe\x00\x02"
+    few = jpeg(40, 30, stray=empty_comment * 1_000)
+    assert header_size(few, "jpeg") == (40, 30)
+    beyond = MAX_JPEG_SEGMENTS_BEFORE_FRAME + 10
+    many = jpeg(40, 30, stray=empty_comment * beyond)
+    assert header_size(many, "jpeg") is None
+    # Pillow sizes it from its first megabyte: still decoded.
+    assert len(many) < PILLOW_HEADER_BYTES
+    assert decode_image(many, "image", 10_000).shape == (30, 40, 3)
+    # A frame header beyond that megabyte is sized by no one: refused undecoded.
+    far = jpeg(40, 30, stray=empty_comment * (PILLOW_HEADER_BYTES // 4 + 10))
+    assert _refusal(far).message == "the jpeg header does not give the image size"
 
 
 def test_a_jpeg_whose_header_gives_no_size_is_refused_undecoded() -> None:
