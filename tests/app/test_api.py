@@ -106,6 +106,15 @@ def test_bad_input_is_4xx_problem_json_and_leaves_the_store_intact(
             (c.post("/v1/objects", files={"mesh": ("b.stl", box_stl())},
                     data={"spec": json.dumps({"learning": {"max_faces": 10}})}),
              422, "spec.learning.max_faces"),
+            # Each in range, together no training view: the job used to fail.
+            (c.post("/v1/objects", files={"mesh": ("b.stl", box_stl())},
+                    data={"spec": json.dumps({"learning": {
+                        "max_level": 0, "min_level": 0, "max_polar_deg": 30}})}),
+             422, "spec.learning.max_polar_deg"),
+            (c.post("/v1/objects", files={"mesh": ("far.obj",
+                                                  b"v 1e39 0 0\nv 1e39 10 0\nv 1e39 0 10\n"
+                                                  b"f 1 2 3\n")}),
+             422, "mesh"),
             (c.post("/v1/objects", files={"spec": (None, "{}")}), 422, "mesh"),
             (c.post("/v1/objects", data={"spec": "{}"}), 415, None),
             (c.post("/v1/objects", json={"mesh": "abc"}), 415, None),
