@@ -51,6 +51,14 @@ def _png_size(data: bytes) -> tuple[int, int] | None:
 _BMP_CORE_HEADER_BYTES = 12
 
 
+def _bmp_header_bytes(data: bytes) -> int | None:
+    """Length of a BMP file's DIB header (at offset 14, after the 14-byte
+    file header), which tells the header's kind; None when cut short."""
+    if len(data) < 18:
+        return None
+    return int(struct.unpack_from("<I", data, 14)[0])
+
+
 def _bmp_size(data: bytes) -> tuple[int, int] | None:
     """(width, height) from the DIB header after the 14-byte file header.
 
@@ -59,7 +67,9 @@ def _bmp_size(data: bytes) -> tuple[int, int] | None:
     to 64 bytes; Windows, 40 bytes and up) signed 32-bit sizes, the height
     negative for rows stored top-down. Other lengths are no header at all.
     """
-    (header_bytes,) = struct.unpack_from("<I", data, 14)
+    header_bytes = _bmp_header_bytes(data)
+    if header_bytes is None:
+        return None
     if header_bytes == _BMP_CORE_HEADER_BYTES:
         w, h = struct.unpack_from("<HH", data, 18)
     elif header_bytes >= 16:
@@ -118,7 +128,7 @@ def _jpeg_size(data: bytes) -> tuple[int, int] | None:
 
 def _has_bmp_core_header(data: bytes) -> bool:
     """Whether a BMP file's DIB header is the 12-byte OS/2 core header."""
-    return data[14:18] == struct.pack("<I", _BMP_CORE_HEADER_BYTES)
+    return _bmp_header_bytes(data) == _BMP_CORE_HEADER_BYTES
 
 
 def _imread_flags(data: bytes, fmt: str) -> int:
