@@ -301,17 +301,50 @@ def _mesh_vertex_colours(arrays: dict[str, NDArray[Any]]) -> NDArray[np.uint8] |
     return colours
 
 
+#: The numbers of the model's metadata a localization computes with.
+_META_NUMBERS = ("diameter_mm", "d0_mm", "f_train_px", "default_min_score")
+
+
+def _require_finite(arrays: dict[str, NDArray[Any]], meta: dict[str, Any]) -> None:
+    """ModelFormatError naming the first float array or metadata number that
+    is not finite.
+
+    A checksum shows that the files are as written, not that what was written
+    is usable: a model stored before uploads far from the origin were refused
+    can hold mesh vertices that overflowed float32 to inf, and every
+    localization of it failed inside the core (a 500). Every float array is
+    checked, not only the vertices: each is read by some step of a
+    localization. Once per load (the store caches models): about 1 ms for a
+    3 MB model.
+    """
+    for name, stored in arrays.items():
+        values = np.asarray(stored)
+        if values.dtype.kind in "fc" and not np.isfinite(values).all():
+            bad = int(values.size - np.count_nonzero(np.isfinite(values)))
+            raise ModelFormatError(
+                f"model array {name!r} holds {bad} non-finite value(s) (inf or NaN)", "model")
+    numbers = {k: meta.get(k) for k in _META_NUMBERS}
+    contour_meta = meta.get("contour_meta")
+    if isinstance(contour_meta, dict):
+        numbers |= {f"contour_meta.{k}": contour_meta.get(k) for k in ("d0_mm", "f_px")}
+    for name, value in numbers.items():
+        if isinstance(value, float) and not np.isfinite(value):
+            raise ModelFormatError(f"model metadata {name!r} is {value} (not finite)", "model")
+
+
 def model_from_arrays(arrays: dict[str, NDArray[Any]], meta: dict[str, Any]) -> ObjectModel:
     """Rebuild a model from ``model_to_arrays`` output.
 
     Raises
     ------
     ModelFormatError
-        Unknown schema version or missing/inconsistent arrays.
+        Unknown schema version, missing/inconsistent arrays, or a float
+        array or metadata number that is not finite.
     """
     version = meta.get("schema_version")
     if version != SCHEMA_VERSION:
         raise ModelFormatError(f"unsupported model schema version {version!r}", "model")
+    _require_finite(arrays, meta)
     try:
         offs = np.asarray(arrays["mv_feat_offsets"], np.int64)
         eoffs = np.asarray(arrays["mv_edge_offsets"], np.int64)

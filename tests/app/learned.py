@@ -15,6 +15,7 @@ from __future__ import annotations
 import shutil
 import sqlite3
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -23,6 +24,7 @@ import httpx
 import pytest
 
 from app.settings import Settings
+from model_store import ModelStore
 from tests.app.conftest import start_server
 from viewloc_bench.localizers import bench_object_name
 from viewloc_client import JobInfo, ObjectInfo, ViewlocClient
@@ -108,3 +110,21 @@ def learned_barbell(tmp_path_factory: pytest.TempPathFactory) -> LearnedStore:
     if "barbell" not in _CACHE:
         _CACHE["barbell"] = _learn(tmp_path_factory.mktemp("learned") / "var")
     return _CACHE["barbell"]
+
+
+def another_barbell(root: Path, object_id: str,
+                    change: Callable[[Any], Any] | None = None) -> str:
+    """A second ready object in the store at ``root``, with the barbell's
+    model (``change(model)`` when given), stored through the steps a learning
+    job takes, so its checksum is valid (no server may have the store open
+    yet: its runner would claim the job)."""
+    store = ModelStore(root)
+    model = store.load_model(object_id)
+    if change is not None:
+        model = change(model)
+    obj, job = store.create_object(name="barbell again", source="mesh", kind="learn_mesh",
+                                   upload=BARBELL.read_bytes(), upload_suffix="bin",
+                                   upload_meta={})
+    assert store.claim_job(job.job_id, "f" * 32) is not None
+    assert store.save_model(obj.object_id, job.job_id, model)
+    return obj.object_id

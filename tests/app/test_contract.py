@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from collections.abc import Callable
 from datetime import datetime
@@ -16,7 +17,7 @@ import pytest
 from model_store import ModelStore
 from tests.app.conftest import LiveServer
 from tests.app.helpers import CAMERA, assert_problem, png
-from tests.app.learned import BARBELL, LearnedStore, learned_barbell
+from tests.app.learned import BARBELL, LearnedStore, another_barbell, learned_barbell
 from viewloc_core.pose import Pose
 
 __all__ = ["learned_barbell"]
@@ -221,26 +222,12 @@ def test_a_region_and_a_depth_range_bound_where_the_part_is_looked_for(
         assert c.get(f"/v1/objects/{oid}").json()["state"] == "ready"
 
 
-def _another_barbell(root: Path, object_id: str) -> str:
-    """A second ready object in the store at ``root``, with the barbell's
-    model, stored through the steps a learning job takes (no server may
-    have the store open yet: its runner would claim the job)."""
-    store = ModelStore(root)
-    model = store.load_model(object_id)
-    obj, job = store.create_object(name="barbell again", source="mesh", kind="learn_mesh",
-                                   upload=BARBELL.read_bytes(), upload_suffix="bin",
-                                   upload_meta={})
-    assert store.claim_job(job.job_id, "f" * 32) is not None
-    assert store.save_model(obj.object_id, job.job_id, model)
-    return obj.object_id
-
-
 def test_an_object_deleted_while_several_are_localized(
     learned_barbell: LearnedStore, make_server: Callable[..., LiveServer], tmp_path: Path,
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     first = learned_barbell.object_id
-    second = _another_barbell(learned_barbell.copy_to(tmp_path / "var"), first)
+    second = another_barbell(learned_barbell.copy_to(tmp_path / "var"), first)
     # No warmer: only the requests load models, so only they delete.
     srv = make_server(prepare_models=False)
     store: ModelStore = srv.app.state.store
@@ -271,3 +258,43 @@ def test_an_object_deleted_while_several_are_localized(
                    data={"camera": cam, "options": json.dumps({"object_ids": [second]})})
         assert_problem(r, 404, "options.object_ids[0]")
         assert not doomed and c.get("/v1/objects").json() == {"objects": []}
+
+
+def _inf_vertex(model: Any) -> Any:
+    """``model`` as an older version could store it: a vertex of an upload far
+    from the origin overflowed float32 to inf (uploads like it are now
+    refused), yet the files' checksums are right."""
+    vertices = np.array(model.mesh_vertices_mm, copy=True)
+    vertices[0, 0] = np.inf
+    return dataclasses.replace(model, mesh_vertices_mm=vertices)
+
+
+def test_a_stored_model_holding_inf_is_corrupt(
+    learned_barbell: LearnedStore, make_server: Callable[..., LiveServer], tmp_path: Path,
+) -> None:
+    good = learned_barbell.object_id
+    root = learned_barbell.copy_to(tmp_path / "var")
+    asked, listed = (another_barbell(root, good, _inf_vertex) for _ in range(2))
+    # No warmer: the requests below are the first to load the models.
+    srv = make_server(prepare_models=False)
+    scene = ("s.png", _scene(SCENE_TRUTH), "image/png")
+    cam = json.dumps(CAMERA)
+    with httpx.Client(base_url=srv.url, timeout=60) as c:
+        # Localized: 409 naming what is not finite (it was a 500).
+        r = c.post(f"/v1/objects/{asked}/localize", files={"image": scene},
+                   data={"camera": cam})
+        body = assert_problem(r, 409)
+        assert body["type"].endswith("/model-corrupt") and "mesh_vertices_mm" in body["detail"]
+        failed = c.get(f"/v1/objects/{asked}").json()
+        assert failed["state"] == "failed" and "mesh_vertices_mm" in failed["error"], failed
+        # Listed before anything loaded it: shown failed, as a corrupt file is.
+        r = c.get("/v1/objects")
+        assert r.status_code == 200, r.text
+        states = {o["object_id"]: (o["state"], o["error"]) for o in r.json()["objects"]}
+        assert states[good] == ("ready", None)
+        assert states[listed][0] == "failed" and "mesh_vertices_mm" in states[listed][1]
+        # The others are still searched.
+        r = c.post("/v1/localize", files={"image": scene}, data={"camera": cam})
+        assert r.status_code == 200, r.text
+        assert r.json()["object_ids"] == [good]
+

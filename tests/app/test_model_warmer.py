@@ -2,17 +2,19 @@
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import httpx
+import numpy as np
 
 from app.model_warmer import ModelWarmer
 from model_store import ModelStore
 from tests.app.conftest import LiveServer
-from tests.app.learned import LearnedStore, learned_barbell
+from tests.app.learned import LearnedStore, another_barbell, learned_barbell
 from viewloc_core import localize as localize_module
 from viewloc_core import view_search
 
@@ -59,6 +61,27 @@ def test_a_corrupt_model_is_reported_by_the_store_and_skipped(
     assert prepared == []
     failed = store.get_object(learned_barbell.object_id)
     assert failed.state == "failed" and "corrupt" in (failed.error or "")
+
+
+def test_a_model_holding_inf_is_reported_by_the_store_and_skipped(
+    learned_barbell: LearnedStore, tmp_path: Path
+) -> None:
+    root = learned_barbell.copy_to(tmp_path / "var")
+    store = ModelStore(root)
+    model = store.load_model(learned_barbell.object_id)
+    # As an older version stored an upload far from the origin: a vertex
+    # overflowed float32 to inf, yet the checksums are right.
+    vertices = np.array(model.mesh_vertices_mm, copy=True)
+    vertices[-1, 2] = np.inf
+    broken = another_barbell(root, learned_barbell.object_id,
+                             lambda m: dataclasses.replace(m, mesh_vertices_mm=vertices))
+    prepared: list[Any] = []
+
+    assert ModelWarmer(store, prepared.append, limit=4).step() == [
+        learned_barbell.object_id]
+    assert prepared == [store.load_model(learned_barbell.object_id)]
+    failed = store.get_object(broken)
+    assert failed.state == "failed" and "mesh_vertices_mm" in (failed.error or "")
 
 
 def test_deleted_objects_are_forgotten(learned_barbell: LearnedStore, tmp_path: Path) -> None:

@@ -37,6 +37,27 @@ def test_missing_array_is_rejected(bracket_model):
         model_from_arrays(arrays, meta)
 
 
+@pytest.mark.parametrize("name", ["mesh_vertices_mm", "mv_xy", "tv_sim_to_model",
+                                  "contour_points_obj", "symmetries"])
+@pytest.mark.parametrize("bad", [np.inf, np.nan])
+def test_a_non_finite_array_is_rejected_naming_it(bracket_model, name, bad):
+    arrays, meta = model_to_arrays(bracket_model)
+    values = np.array(arrays[name], copy=True)
+    values.reshape(-1)[-1] = bad
+    with pytest.raises(ModelFormatError, match=f"'{name}' holds 1 non-finite"):
+        model_from_arrays({**arrays, name: values}, meta)
+
+
+@pytest.mark.parametrize("name", ["d0_mm", "f_train_px", "contour_meta.f_px"])
+def test_a_non_finite_metadata_number_is_rejected_naming_it(bracket_model, name):
+    arrays, meta = model_to_arrays(bracket_model)
+    outer, _, key = name.rpartition(".")
+    changed = ({**meta, outer: {**meta[outer], key: float("inf")}} if outer
+               else {**meta, key: float("inf")})
+    with pytest.raises(ModelFormatError, match=f"'{name}' is inf"):
+        model_from_arrays(arrays, changed)
+
+
 def test_symmetries_round_trip_and_form_a_group(bracket_model):
     from dataclasses import replace
 
