@@ -292,10 +292,28 @@ class LocalizationOut(BaseModel):
     )
 
 
+class SkippedObjectOut(BaseModel):
+    """A ready object that ``POST /v1/localize`` listed but could not search."""
+
+    object_id: str
+    reason: Literal["corrupt", "not-ready", "deleted"] = Field(
+        description="'corrupt': its stored model turned out unusable when loaded (the object "
+        "is now failed); 'not-ready': it was no longer ready when its model was loaded; "
+        "'deleted': it was deleted after it was listed.",
+    )
+    detail: str = Field(description="What the store said, as a 409 or 404 would.")
+
+
 class MultiLocalizationOut(BaseModel):
     """Answer of ``POST /v1/localize``."""
 
     object_ids: list[str] = Field(description="The objects that were searched.")
+    skipped: list[SkippedObjectOut] = Field(
+        default_factory=list,
+        description="Without options.object_ids: the ready objects that could not be "
+        "searched, and why (the others were searched). Always empty when object_ids is "
+        "given: an object named there that cannot be searched answers 404 or 409.",
+    )
     image: ImageSize
     detections: list[DetectionOut]
     timing_ms: dict[str, float]

@@ -79,6 +79,9 @@ class Localization:
     detections: list[dict[str, Any]]
     timing_ms: dict[str, float]
     overlay_png: bytes | None = None
+    #: Objects of an all-object localization that could not be searched, as
+    #: the API's JSON dicts (``object_id``, ``reason``, ``detail``).
+    skipped: list[dict[str, Any]] = field(default_factory=list)
 
 
 def _camera_json(camera: dict[str, Any] | Any) -> str:
@@ -276,6 +279,7 @@ class ViewlocClient:
             width=int(body["image"]["width"]), height=int(body["image"]["height"]),
             detections=list(body["detections"]), timing_ms=dict(body["timing_ms"]),
             overlay_png=base64.b64decode(png) if png else None,
+            skipped=list(body.get("skipped") or []),
         )
 
     # -- operations --------------------------------------------------------

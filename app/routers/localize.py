@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import base64
 import dataclasses
+import logging
 import time
 from typing import Annotated, Any
 
@@ -28,7 +29,11 @@ from app.schemas import (
 )
 from app.serialize import detection_dict
 from model_store import ModelStore
-from model_store.errors import ObjectNotFoundError
+from model_store.errors import (
+    CorruptModelError,
+    ObjectNotFoundError,
+    ObjectNotReadyError,
+)
 from viewloc_core.camera import Camera
 from viewloc_core.detection import Detection
 from viewloc_core.errors import InvalidCameraError
@@ -43,6 +48,8 @@ from viewloc_core.localize import (
 from viewloc_core.search_space import DepthRange, ImageRegion
 
 router = APIRouter(tags=["localization"])
+
+log = logging.getLogger("viewloc.app")
 
 ImageFile = Annotated[UploadFile, File(description="Scene image: PNG, JPEG, TIFF or BMP.")]
 CameraField = Annotated[
@@ -209,23 +216,42 @@ def _require_named(store: ModelStore, fields: dict[str, str | None]) -> None:
             raise ObjectNotFoundError(exc.message, field) from exc
 
 
-def _load_models(store: ModelStore, fields: dict[str, str | None]) -> list[tuple[str, Any]]:
-    """(id, model) of each object to search.
+def _load_models(
+    store: ModelStore, fields: dict[str, str | None]
+) -> tuple[list[tuple[str, Any]], list[dict[str, str]]]:
+    """(id, model) of each object to search, and the listed objects skipped.
 
-    An object deleted since it was checked or listed answers 404 naming its
-    list entry when the client named it; when the client named none it is
-    skipped, as it would not have been listed a moment later (and the client
-    cannot act on a 404 about an object it never asked for).
+    An object the client named keeps its error: 404 naming its list entry
+    when it was deleted since it was checked, 409 when it is not ready or its
+    stored model turns out corrupt (a client that names an object wants to
+    know). When the client named none, an object deleted since it was
+    listed, no longer ready, or whose model turns out corrupt (the store has
+    just marked it failed) is skipped and reported in ``skipped``: one
+    unusable object must not fail the search for all the others, and the
+    client cannot act on an error about an object it never asked for.
     """
     models: list[tuple[str, Any]] = []
+    skipped: list[dict[str, str]] = []
     for oid, field in fields.items():
         try:
             models.append((oid, store.load_model(oid)))
         except ObjectNotFoundError as exc:
-            if field is None:
-                continue
-            raise ObjectNotFoundError(exc.message, field) from exc
-    return models
+            if field is not None:
+                raise ObjectNotFoundError(exc.message, field) from exc
+            skipped.append({"object_id": oid, "reason": "deleted", "detail": exc.message})
+        except ObjectNotReadyError as exc:
+            if field is not None:
+                raise
+            skipped.append({"object_id": oid, "reason": "not-ready", "detail": exc.message})
+        except CorruptModelError as exc:
+            if field is not None:
+                raise
+            # At error level, as when a request that named the object is
+            # answered (app.problems): a damaged store is for an operator to
+            # see, whichever request met it first.
+            log.error("corrupt stored model of %s skipped: %s", oid, exc.message)
+            skipped.append({"object_id": oid, "reason": "corrupt", "detail": exc.message})
+    return models, skipped
 
 
 @router.post(
@@ -249,7 +275,9 @@ def localize_many(
     ] = None,
     overlay: Overlay = False,
 ) -> dict[str, Any]:
-    """Each detection carries its ``object_id``; best score first."""
+    """Each detection carries its ``object_id``; best score first. Without
+    ``options.object_ids``, a listed object that cannot be searched is
+    reported in ``skipped`` instead of failing the request."""
     t0 = time.perf_counter()
     timing: dict[str, float] = {}
     opts = parse_json_field(options, MultiLocalizeOptionsIn, "options")
@@ -257,7 +285,7 @@ def localize_many(
     _require_named(store, fields)  # 404 before the image is decoded
     img = _decode(image, settings, timing)
     cam = _camera(camera, img.shape[1], img.shape[0])
-    models = _load_models(store, fields)
+    models, skipped = _load_models(store, fields)
     ids = [oid for oid, _ in models]
     all_dets: list[Detection] = []
     drawn: list[tuple[Any, list[Detection]]] = []
@@ -279,4 +307,5 @@ def localize_many(
         scene.release()
     all_dets.sort(key=lambda d: -d.score)
     timing["localize"] = localize_ms
-    return _answer({"object_ids": ids}, img, cam, all_dets, drawn, overlay, timing, t0)
+    return _answer({"object_ids": ids, "skipped": skipped}, img, cam, all_dets, drawn, overlay,
+                   timing, t0)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 from collections.abc import Callable
 from datetime import datetime
 from pathlib import Path
@@ -18,6 +19,7 @@ from model_store import ModelStore
 from tests.app.conftest import LiveServer
 from tests.app.helpers import CAMERA, assert_problem, png
 from tests.app.learned import BARBELL, LearnedStore, another_barbell, learned_barbell
+from viewloc_client import ViewlocClient
 from viewloc_core.pose import Pose
 
 __all__ = ["learned_barbell"]
@@ -252,6 +254,9 @@ def test_an_object_deleted_while_several_are_localized(
         assert r.status_code == 200, r.text
         assert r.json()["object_ids"] == [second]
         assert [d["object_id"] for d in r.json()["detections"]] == [second]
+        # ... and the answer says so.
+        [gone] = r.json()["skipped"]
+        assert gone["object_id"] == first and gone["reason"] == "deleted", gone
         # Named by the client: 404 naming its entry in the list.
         doomed.add(second)
         r = c.post("/v1/localize", files={"image": scene},
@@ -298,3 +303,69 @@ def test_a_stored_model_holding_inf_is_corrupt(
         assert r.status_code == 200, r.text
         assert r.json()["object_ids"] == [good]
 
+
+class _Records(logging.Handler):
+    """The records a logger emits (the service's loggers do not propagate to
+    pytest's handler)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.records: list[logging.LogRecord] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.records.append(record)
+
+
+def test_objects_unusable_at_load_are_skipped_unless_named(
+    learned_barbell: LearnedStore, make_server: Callable[..., LiveServer], tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    good = learned_barbell.object_id
+    root = learned_barbell.copy_to(tmp_path / "var")
+    corrupt, corrupt_named = (another_barbell(root, good, _inf_vertex) for _ in range(2))
+    stale, stale_named = (another_barbell(root, good) for _ in range(2))
+    srv = make_server(prepare_models=False)
+    store: ModelStore = srv.app.state.store
+    load_model = store.load_model
+
+    def failed_first(object_id: str) -> Any:
+        """The store's load_model, after the stale objects stopped being ready
+        (after the request listed or checked them)."""
+        if object_id in (stale, stale_named):
+            store.mark_object_failed(object_id, "relearning failed")
+        return load_model(object_id)
+
+    monkeypatch.setattr(store, "load_model", failed_first)
+    records = _Records()
+    logging.getLogger("viewloc.app").addHandler(records)
+    scene = ("s.png", _scene(SCENE_TRUTH), "image/png")
+    cam = json.dumps(CAMERA)
+    try:
+        with httpx.Client(base_url=srv.url, timeout=60) as c:
+            def many(options: dict[str, Any]) -> httpx.Response:
+                return c.post("/v1/localize", files={"image": scene},
+                              data={"camera": cam, "options": json.dumps(options)})
+
+            # Named by the client: the errors of the object's own endpoint.
+            body = assert_problem(many({"object_ids": [corrupt_named]}), 409)
+            assert body["type"].endswith("/model-corrupt"), body
+            body = assert_problem(many({"object_ids": [good, stale_named]}), 409)
+            assert body["type"].endswith("/object-not-ready"), body
+            # Named by no one: skipped, said why, and the good object is searched
+            # (one corrupt model made every such request a 500, then a 409).
+            with ViewlocClient(srv.url) as client:
+                found = client.localize(None, scene[1], CAMERA)
+            assert found.object_ids == [good]
+            assert [d["object_id"] for d in found.detections] == [good]
+            assert [(s["object_id"], s["reason"]) for s in found.skipped] == [
+                (corrupt, "corrupt"), (stale, "not-ready")]
+            assert "mesh_vertices_mm" in found.skipped[0]["detail"]
+            assert "relearning failed" in found.skipped[1]["detail"]
+            # A corrupt model is logged for an operator, as a 409 about it is.
+            assert any(r.levelno == logging.ERROR and corrupt in r.getMessage()
+                       and "mesh_vertices_mm" in r.getMessage() for r in records.records)
+            # They are failed now: not listed, not skipped again.
+            again = many({}).json()
+            assert again["object_ids"] == [good] and again["skipped"] == []
+    finally:
+        logging.getLogger("viewloc.app").removeHandler(records)
