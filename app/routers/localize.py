@@ -15,7 +15,7 @@ from typing import Annotated, Any
 import numpy as np
 from fastapi import APIRouter, Depends, File, Form, Path, Query, UploadFile
 
-from app.deps import MetricsDep, SettingsDep, StoreDep, require_multipart
+from app.deps import MetricsDep, SettingsDep, StoreDep, require_multipart, single_parts
 from app.imaging import decode_image, encode_png
 from app.openapi_doc import errors
 from app.problems import ProblemError
@@ -50,6 +50,9 @@ from viewloc_core.search_space import DepthRange, ImageRegion
 router = APIRouter(tags=["localization"])
 
 log = logging.getLogger("viewloc.app")
+
+#: The form parts of a localization that a client may send once only.
+_SINGLE_PARTS = single_parts("image", "camera", "options")
 
 ImageFile = Annotated[UploadFile, File(description="Scene image: PNG, JPEG, TIFF or BMP.")]
 CameraField = Annotated[
@@ -145,7 +148,7 @@ def _answer(
     "/v1/objects/{object_id}/localize",
     response_model=LocalizationOut,
     response_model_exclude_none=False,
-    dependencies=[Depends(require_multipart)],
+    dependencies=[Depends(require_multipart), Depends(_SINGLE_PARTS)],
     responses=errors(400, 404, 409, 413, 415, 422, 503),
     summary="Localize one object in an image (6D pose)",
 )
@@ -257,7 +260,7 @@ def _load_models(
 @router.post(
     "/v1/localize",
     response_model=MultiLocalizationOut,
-    dependencies=[Depends(require_multipart)],
+    dependencies=[Depends(require_multipart), Depends(_SINGLE_PARTS)],
     responses=errors(400, 404, 409, 413, 415, 422, 503),
     summary="Localize several (default: all ready) objects in one image",
 )

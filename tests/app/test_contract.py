@@ -224,6 +224,33 @@ def test_a_region_and_a_depth_range_bound_where_the_part_is_looked_for(
         assert c.get(f"/v1/objects/{oid}").json()["state"] == "ready"
 
 
+def test_a_part_sent_twice_is_refused_naming_it(
+    learned_barbell: LearnedStore, make_server: Callable[..., LiveServer], tmp_path: Path
+) -> None:
+    srv, oid, scene, cam = _served_scene(learned_barbell, make_server, tmp_path)
+    garbage = ("g.png", b"not an image", "image/png")
+    with httpx.Client(base_url=srv.url, timeout=60) as c:
+        for path in (f"/v1/objects/{oid}/localize", "/v1/localize"):
+            # The last part of a name was used and the others dropped: the
+            # scene followed by garbage was a 422 about the image, the other
+            # way round a 200 that never looked at the garbage.
+            for images in ([scene, garbage], [garbage, scene], [scene, scene]):
+                r = c.post(path, files=[("image", f) for f in images], data={"camera": cam})
+                assert "send exactly one image" in assert_problem(r, 422, "image")["detail"]
+            assert_problem(c.post(path, files={"image": scene}, data={"camera": [cam, cam]}),
+                           422, "camera")
+            # Sent once as text and once as a file is sent twice.
+            assert_problem(c.post(path, files=[("image", scene), ("camera", ("c.json", cam))],
+                                  data={"camera": cam}), 422, "camera")
+            assert_problem(c.post(path, files={"image": scene},
+                                  data={"camera": cam, "options": ["{}", "{}"]}),
+                           422, "options")
+            # One of each is localized.
+            r = c.post(path, files={"image": scene}, data={"camera": cam, "options": "{}"})
+            assert r.status_code == 200, r.text
+            assert len(r.json()["detections"]) == 1
+
+
 def test_an_object_deleted_while_several_are_localized(
     learned_barbell: LearnedStore, make_server: Callable[..., LiveServer], tmp_path: Path,
     monkeypatch: pytest.MonkeyPatch,
