@@ -19,8 +19,8 @@ from viewloc_bench.localizers import (
 )
 from viewloc_bench.photos import DEFAULT_PHOTOS, PhotoBackend
 
-ALL_SETS = ("paper", "hard", "novel", "multi", "hard-mono", "hard-hd", "hard-photos", "lmo",
-            "lmo-grey")
+ALL_SETS = ("paper", "hard", "novel", "multi", "shop", "hard-mono", "hard-hd", "hard-photos",
+            "lmo", "lmo-grey")
 
 #: Diagnostic sets run only when named in ``--sets``: LM-O's targets
 #: rendered at their true poses over their photos or over grey

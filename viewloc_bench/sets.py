@@ -52,7 +52,7 @@ from viewloc_core.pose import Pose, orthonormalize
 Array = NDArray[np.float64]
 
 GENERATOR_VERSION = "1"
-SET_CODES = {"paper": 1, "hard": 2, "novel": 3, "multi": 4}
+SET_CODES = {"paper": 1, "hard": 2, "novel": 3, "multi": 4, "shop": 5}
 
 
 @dataclass(frozen=True, slots=True)
@@ -159,6 +159,22 @@ def multi_spec(images_per_n: int = 8, negatives: int = 0, scale: float = 1.0) ->
     )
 
 
+def shop_spec(images_per_n: int = 10, negatives: int = 4, scale: float = 1.0) -> SetSpec:
+    """The shop set: hex bolt, stepped shaft and sheet-metal plate in the hard set's scenes.
+
+    A second generalisation check, added after the localizer's settings
+    had been tuned on every other set: shapes common on a shop floor that
+    the others lack (a sixfold symmetry, a turned part with no cue to its
+    turn, a thin flat part).
+    """
+    return replace(
+        hard_spec(images_per_n, negatives, scale),
+        name="shop",
+        objects=("hexbolt", "shaft", "plate"),
+        n_values=(0, 2, 4, 6),
+    )
+
+
 class SpecFactory(Protocol):
     """A set's parameters at a size: ``paper_spec``, ``hard_spec``, ``novel_spec``, ..."""
 
@@ -173,6 +189,7 @@ SPECS: dict[str, SpecFactory] = {
     "hard": hard_spec,
     "novel": novel_spec,
     "multi": multi_spec,
+    "shop": shop_spec,
 }
 
 

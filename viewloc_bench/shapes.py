@@ -441,6 +441,78 @@ def knob() -> Shape:
     return Shape("knob", tuple(prims))
 
 
+# --- The shop set's parts: a hex bolt, a stepped shaft, a sheet-metal plate. ---------------
+# Shapes common on a shop floor that no localizer setting was tuned on: a
+# part whose only cue to its turn about its axis is a hexagon, a part with
+# no such cue at all, and a thin flat part that seen edge-on is a line.
+HEXBOLT_HEAD_ACROSS_FLATS_MM = 30.0
+HEXBOLT_HEAD_HEIGHT_MM = 13.0
+HEXBOLT_SHANK_MM = (10.0, 90.0)  # radius, length
+#: (x start, x end, radius) of each section along the shaft's axis (x).
+SHAFT_SECTIONS_MM = ((0.0, 32.0, 8.0), (32.0, 44.0, 16.0), (44.0, 100.0, 11.0),
+                     (100.0, 122.0, 7.0))
+PLATE_MM = (100.0, 60.0, 3.0)  # length (x), width (y), thickness (z)
+#: (x, y, radius) of its holes: no turn or mirror of the plate's rectangle
+#: maps them near each other (a pattern symmetric about the plate's centre
+#: would leave the half turn about its normal to radii alone to tell).
+PLATE_HOLES_MM = ((15.0, 45.0, 6.0), (50.0, 14.0, 5.0), (82.0, 29.0, 3.5))
+
+
+def _turn_about_y(angle_deg: float) -> Array:
+    """(4, 4) rotation by ``angle_deg`` about the object's y axis."""
+    c, s = np.cos(np.radians(angle_deg)), np.sin(np.radians(angle_deg))
+    out = np.eye(4)
+    out[:3, :3] = [[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]]
+    return out
+
+
+def hexbolt() -> Shape:
+    """A hex bolt along object y: hexagonal head, plain round shank.
+
+    Symmetric under the five turns of 60° multiples about y (the head's
+    hexagon); the shank's end tells its ends apart. Origin at the
+    bounding-box centre, on the axis.
+    """
+    r_head = HEXBOLT_HEAD_ACROSS_FLATS_MM / np.sqrt(3.0)  # circumradius
+    angles = np.radians(60.0 * np.arange(6))
+    # Counter-clockwise seen from -y in the prism's (x, z) profile.
+    hexagon = np.c_[r_head * np.cos(angles), r_head * np.sin(angles)]
+    radius, length = HEXBOLT_SHANK_MM
+    total = HEXBOLT_HEAD_HEIGHT_MM + length
+    head_v, head_f = _prism(hexagon, -total / 2, -total / 2 + HEXBOLT_HEAD_HEIGHT_MM)
+    prims: list[Primitive] = [
+        TriMesh(head_v, head_f),
+        Cylinder((0.0, -total / 2 + HEXBOLT_HEAD_HEIGHT_MM, 0.0), (0.0, total / 2, 0.0), radius),
+    ]
+    return Shape("hexbolt", tuple(prims),
+                 sym_discrete=tuple(_turn_about_y(60.0 * k) for k in range(1, 6)))
+
+
+def shaft() -> Shape:
+    """A stepped shaft along object x: a collar, a long journal and two ends of
+    other radii.
+
+    Symmetric under every turn about x, and under nothing else: the steps
+    tell its ends apart. Origin at the bounding-box centre, on the axis.
+    """
+    centre = (SHAFT_SECTIONS_MM[0][0] + SHAFT_SECTIONS_MM[-1][1]) / 2
+    prims: list[Primitive] = [Cylinder((x0 - centre, 0.0, 0.0), (x1 - centre, 0.0, 0.0), r)
+                              for x0, x1, r in SHAFT_SECTIONS_MM]
+    return Shape("shaft", tuple(prims),
+                 sym_continuous=((np.array([1.0, 0.0, 0.0]), np.zeros(3)),))
+
+
+def plate() -> Shape:
+    """A thin sheet-metal plate with three round holes of different sizes.
+
+    No symmetry (the holes are off-centre and of three sizes). Origin at
+    the bounding-box centre.
+    """
+    L, W, T = PLATE_MM
+    verts, faces = _plate_with_holes(L, W, T, PLATE_HOLES_MM)
+    return Shape("plate", (TriMesh(verts - np.array([L / 2, W / 2, T / 2]), faces),))
+
+
 # --- Clutter (paper §5.1: "rectangular clutter structures"). -------------------------------
 def bar(length: float, width: float, height: float) -> Shape:
     """A rectangular bar along x."""
@@ -561,6 +633,9 @@ ASSET_FILES = {
     "tee": "tee.stl",
     "clamp": "clamp.stl",
     "knob": "knob.ply",
+    "hexbolt": "hexbolt.stl",
+    "shaft": "shaft.stl",
+    "plate": "plate.stl",
 }
 SHAPES = {
     "barbell": barbell,
@@ -569,6 +644,9 @@ SHAPES = {
     "tee": tee,
     "clamp": clamp,
     "knob": knob,
+    "hexbolt": hexbolt,
+    "shaft": shaft,
+    "plate": plate,
 }
 
 

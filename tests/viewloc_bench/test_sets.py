@@ -208,6 +208,17 @@ def test_novel_spec_is_the_hard_scenes_with_new_objects() -> None:
     assert cli.ALL_SETS.index("novel") == cli.ALL_SETS.index("hard") + 1
 
 
+def test_shop_spec_is_the_hard_scenes_with_parts_no_other_set_has() -> None:
+    shop, hard = sets.shop_spec(), sets.hard_spec()
+    assert shop.objects == ("hexbolt", "shaft", "plate")
+    others = {o for name, make in sets.SPECS.items() if name != "shop" for o in make().objects}
+    assert not set(shop.objects) & others
+    assert (shop.images_per_n, shop.negatives, shop.n_values) == (10, 4, (0, 2, 4, 6))
+    assert shop.camera == hard.camera and shop.scene == hard.scene
+    assert cli.ALL_SETS.index("shop") == cli.ALL_SETS.index("multi") + 1
+    assert cli.set_spec("shop", 2, 1.0) == sets.shop_spec(2, 2)
+
+
 def test_novel_set_ground_truth_is_sane(tiny_novel_set: Path) -> None:
     gt = json.loads((tiny_novel_set / "gt.json").read_text())
     bench = sets.load_generated(tiny_novel_set)

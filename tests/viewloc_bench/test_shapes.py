@@ -132,3 +132,56 @@ def test_knob_body_is_turned_and_only_the_lever_breaks_its_symmetry() -> None:
         assert _largest_miss_mm(about_axis, _rotation("z", deg)) < 1e-6
     whole = np.asarray(shapes.to_trimesh(shape).vertices) - np.r_[axis, 0.0]
     assert _largest_miss_mm(whole, _rotation("z", 180.0)) > 30.0
+
+
+@pytest.mark.parametrize("make", [shapes.hexbolt, shapes.shaft, shapes.plate])
+def test_shop_objects_are_closed_and_sized_like_the_bracket(
+    make: Callable[[], shapes.Shape],
+) -> None:
+    shape = make()
+    for p in shape.primitives:
+        part = shapes.to_trimesh(shapes.Shape("part", (p,)))
+        assert part.is_watertight
+        assert part.volume > 0  # faces point outwards
+    mesh = shapes.to_trimesh(shape)
+    assert 100.0 <= shapes.diameter_mm(mesh) <= 140.0
+    # The origin is the bounding-box centre.
+    assert np.allclose(mesh.bounds.sum(axis=0), 0.0, atol=1e-9)
+
+
+def test_hexbolt_has_exactly_its_sixfold_turns_about_y() -> None:
+    shape = shapes.hexbolt()
+    v = np.asarray(shapes.to_trimesh(shape).vertices)
+    assert len(shape.symmetries()) == 6 and not shape.sym_continuous
+    for S in shape.sym_discrete:
+        assert np.allclose(S[:3, :3] @ S[:3, :3].T, np.eye(3)) and np.linalg.det(S[:3, :3]) > 0
+        # The shank is a 64-gon, which a sixth of a turn moves by up to 0.33 mm.
+        assert _largest_miss_mm(v, S) < 0.5
+    # A twelfth of a turn moves the head's corners onto its flats; any half
+    # turn across the axis swaps head and shank end.
+    assert _largest_miss_mm(v, _rotation("y", 30.0)) > 2.0
+    for axis in "xz":
+        assert _largest_miss_mm(v, _rotation(axis, 180.0)) > 5.0
+
+
+def test_shaft_is_turned_about_x_and_its_steps_tell_its_ends_apart() -> None:
+    shape = shapes.shaft()
+    v = np.asarray(shapes.to_trimesh(shape).vertices)
+    syms = shape.symmetries(step_deg=360.0 / shapes.CYLINDER_SECTIONS)
+    assert len(syms) == shapes.CYLINDER_SECTIONS
+    for S in syms[::5]:
+        assert _largest_miss_mm(v, S) < 1e-6
+    for axis in "yz":
+        assert _largest_miss_mm(v, _rotation(axis, 180.0)) > 5.0
+
+
+def test_plate_is_thin_and_its_holes_break_every_symmetry() -> None:
+    shape = shapes.plate()
+    mesh = shapes.to_trimesh(shape)
+    assert np.allclose(mesh.extents, shapes.PLATE_MM)
+    # Three through holes: a closed surface of genus 3.
+    assert mesh.euler_number == 2 - 2 * len(shapes.PLATE_HOLES_MM)
+    assert shape.symmetries().shape == (1, 4, 4)
+    v = np.asarray(mesh.vertices)
+    for axis in "xyz":
+        assert _largest_miss_mm(v, _rotation(axis, 180.0)) > 3.0
