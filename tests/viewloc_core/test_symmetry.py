@@ -118,10 +118,65 @@ def test_off_centre_hole_breaks_the_symmetry():
     assert len(sym.discrete) == 1 and sym.continuous_axis is None
 
 
+def _hex_bolt() -> trimesh.Trimesh:
+    """A hexagonal head (30 mm across its flats, 13 mm high) on a round
+    shank 90 mm long: the head's corners alone show its turn."""
+    head = trimesh.creation.cylinder(radius=30.0 / math.sqrt(3.0), height=13.0, sections=6)
+    head.apply_translation([0.0, 0.0, -45.0])
+    shank = trimesh.creation.cylinder(radius=10.0, height=90.0, sections=64)
+    shank.apply_translation([0.0, 0.0, 6.5])
+    return trimesh.util.concatenate([head, shank])
+
+
+def _studded_plate() -> trimesh.Trimesh:
+    """A 3 mm plate with three small studs, none where a half turn or a
+    mirror of the plate would put another."""
+    parts = [trimesh.creation.box((100.0, 60.0, 3.0))]
+    for (x, y), r in zip(((-30.0, 15.0), (5.0, -16.0), (32.0, 4.0)), (4.0, 3.0, 2.5),
+                         strict=True):
+        stud = trimesh.creation.cylinder(radius=r, height=2.0, sections=24)
+        stud.apply_translation([x, y, 2.5])
+        parts.append(stud)
+    return trimesh.util.concatenate(parts)
+
+
+def test_hex_bolt_is_sixfold_not_continuous():
+    """The mean and 99th-percentile tests pass a hex bolt turned by any angle
+    (its head is a small share of the surface); its corners do not."""
+    bolt = _hex_bolt()
+    sym = detect_symmetries(bolt)
+    assert sym.continuous_axis is None
+    assert len(sym.discrete) == 6
+    for T in sym.discrete:
+        assert abs(T[:3, :3][:, 2] @ [0.0, 0.0, 1.0]) > math.cos(math.radians(1.0))
+        assert _is_symmetry(bolt, T, 2.0)
+
+
+@pytest.mark.parametrize(("sections", "discrete", "continuous"),
+                         [(6, 12, False), (8, 16, False), (24, 2, True), (48, 2, True)])
+def test_prisms_keep_their_order_and_fine_polygons_are_cylinders(sections, discrete,
+                                                                 continuous):
+    """A hexagonal or octagonal prism is n-fold (with its n flips); a 24-gon
+    is a tessellated cylinder (24 sections: 1 mm of its 30 mm radius)."""
+    sym = detect_symmetries(
+        trimesh.creation.cylinder(radius=30.0, height=80.0, sections=sections))
+    assert len(sym.discrete) == discrete
+    assert (sym.continuous_axis is not None) == continuous
+
+
+def test_small_studs_break_the_symmetry_of_a_thin_plate():
+    """Three studs on a 3 mm plate move few surface samples far when the plate
+    is turned over: the farthest hundredth of them shows it."""
+    sym = detect_symmetries(_studded_plate())
+    assert len(sym.discrete) == 1 and sym.continuous_axis is None
+
+
 quats = st.tuples(*(st.floats(-1, 1),) * 4).filter(lambda q: np.linalg.norm(q) > 0.1)
-shapes = st.sampled_from(["box", "cylinder", "barbell", "l_bracket"])
-EXPECT = {"box": (4, False), "cylinder": (2, True), "barbell": (2, True), "l_bracket": (1, False)}
-MAKERS = {"box": _box, "cylinder": _cylinder, "barbell": _barbell, "l_bracket": ribbed_bracket}
+shapes = st.sampled_from(["box", "cylinder", "barbell", "l_bracket", "hex_bolt"])
+EXPECT = {"box": (4, False), "cylinder": (2, True), "barbell": (2, True), "l_bracket": (1, False),
+          "hex_bolt": (6, False)}
+MAKERS = {"box": _box, "cylinder": _cylinder, "barbell": _barbell, "l_bracket": ribbed_bracket,
+          "hex_bolt": _hex_bolt}
 
 
 @settings(max_examples=6, deadline=None)
