@@ -10,7 +10,7 @@ from typing import Annotated, Any
 import numpy as np
 from fastapi import APIRouter, Depends, File, Form, Path, Response, UploadFile
 
-from app.deps import RunnerDep, SettingsDep, StoreDep, require_multipart
+from app.deps import RunnerDep, SettingsDep, StoreDep, require_multipart, single_parts
 from app.imaging import decode_image
 from app.openapi_doc import errors
 from app.problems import ProblemError
@@ -36,6 +36,11 @@ router = APIRouter(prefix="/v1/objects", tags=["objects"])
 ObjectId = Annotated[str, Path(description="Object id (32 hex digits).")]
 
 _MESH_TYPES = ("stl", "obj", "ply", "off", "glb", "gltf")
+
+#: The form parts of an upload that a client may send once only; a
+#: from-images upload's images and masks are one part per photo.
+_MESH_SINGLE_PARTS = single_parts("mesh", "spec")
+_IMAGES_SINGLE_PARTS = single_parts("spec")
 
 
 def mesh_file_type(filename: str | None, data: bytes) -> str:
@@ -126,7 +131,7 @@ def _created(store_obj: Any, store_job: Any, response: Response) -> dict[str, An
     "",
     status_code=202,
     response_model=ObjectCreated,
-    dependencies=[Depends(require_multipart)],
+    dependencies=[Depends(require_multipart), Depends(_MESH_SINGLE_PARTS)],
     responses=errors(400, 413, 415, 422, 503),
     summary="Learn an object from a CAD mesh",
 )
@@ -183,7 +188,7 @@ def create_object(
     "/from-images",
     status_code=202,
     response_model=ObjectCreated,
-    dependencies=[Depends(require_multipart)],
+    dependencies=[Depends(require_multipart), Depends(_IMAGES_SINGLE_PARTS)],
     responses=errors(400, 413, 415, 422, 503),
     summary="Learn an object from real images with known viewing angles",
 )

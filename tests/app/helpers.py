@@ -6,6 +6,7 @@ import io
 import json
 import struct
 import time
+from pathlib import Path
 from typing import Any
 
 import cv2
@@ -94,3 +95,9 @@ def assert_problem(r: httpx.Response, status: int, field: str | None = None) -> 
     if field is not None:
         assert any(e["field"] == field for e in body.get("errors", [])), body
     return body
+
+
+def stored_files(root: Path) -> list[Path]:
+    """The files of the store at ``root``, its SQLite database left out (jobs write to it)."""
+    return sorted(p.relative_to(root) for p in root.rglob("*")
+                  if p.is_file() and "sqlite" not in p.name)

@@ -17,7 +17,16 @@ from openapi_spec_validator import validate
 
 from model_store import ModelStore
 from tests.app.conftest import TEST_TASKS, LiveServer, free_port
-from tests.app.helpers import CAMERA, assert_problem, box_stl, jpeg, png, upload_mesh, wait_job
+from tests.app.helpers import (
+    CAMERA,
+    assert_problem,
+    box_stl,
+    jpeg,
+    png,
+    stored_files,
+    upload_mesh,
+    wait_job,
+)
 
 SLEEPY = {**TEST_TASKS, "learn_mesh": TEST_TASKS["sleepy"]}
 
@@ -227,6 +236,37 @@ def test_bad_input_is_4xx_problem_json_and_leaves_the_store_intact(
                              if p.is_file() and "sqlite" not in p.name)
         assert files_after == files_before
         assert [o["object_id"] for o in c.get("/v1/objects").json()["objects"]] == [oid]
+
+
+def test_a_repeated_mesh_or_spec_part_is_refused_naming_it(
+    make_server: Callable[..., LiveServer], tmp_path: Path
+) -> None:
+    srv = make_server(tasks=SLEEPY)
+    box = ("b.stl", box_stl(), "application/octet-stream")
+    garbage = ("g.stl", b"this is not a mesh at all", "application/octet-stream")
+    spec = json.dumps({"name": "box", "units": "mm"})
+    with httpx.Client(base_url=srv.url, timeout=30) as c:
+        before = c.get("/v1/objects").json()
+        files_before = stored_files(tmp_path / "var")
+        # The last part of a name was used and the others dropped: the box
+        # followed by garbage was a 422 about the mesh, the other way round
+        # a 202 that learned the box and never looked at the garbage.
+        for meshes in ([box, garbage], [garbage, box], [box, box]):
+            r = c.post("/v1/objects", files=[("mesh", m) for m in meshes], data={"spec": spec})
+            assert "send exactly one mesh" in assert_problem(r, 422, "mesh")["detail"]
+        # Two specs: the units of the first were ignored (cm, then mm).
+        r = c.post("/v1/objects", files={"mesh": box},
+                   data={"spec": [json.dumps({"units": "cm"}), spec]})
+        assert "send exactly one spec" in assert_problem(r, 422, "spec")["detail"]
+        # Sent once as text and once as a file is sent twice.
+        assert_problem(c.post("/v1/objects", files=[("mesh", box), ("spec", ("s.json", spec))],
+                              data={"spec": spec}), 422, "spec")
+        # Refused before anything is stored or a job started.
+        assert c.get("/v1/objects").json() == before
+        assert stored_files(tmp_path / "var") == files_before
+        # One of each is learned.
+        r = c.post("/v1/objects", files={"mesh": box}, data={"spec": spec})
+        assert r.status_code == 202, r.text
 
 
 def test_api_keys(make_server: Callable[..., LiveServer]) -> None:

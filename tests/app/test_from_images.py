@@ -14,7 +14,7 @@ import pytest
 from model_store import ModelStore
 from model_store.files import decode_arrays
 from tests.app.conftest import TEST_TASKS, LiveServer
-from tests.app.helpers import CAMERA, assert_problem, png
+from tests.app.helpers import CAMERA, assert_problem, png, stored_files
 from tests.viewloc_core.conftest import l_bracket, render_scene
 from viewloc_client import ViewlocClient
 from viewloc_core import metrics as vm
@@ -241,6 +241,34 @@ def test_from_images_bad_input_is_4xx_naming_the_field(
         assert stored["image_0000"].dtype == np.uint16 and stored["image_0000"].ndim == 2
         assert stored["mask_0000"].ndim == 2 and stored["mask_0000"].max() == 1
         assert record.upload_meta["views"][0]["inplane_deg"] == 0.0
+
+
+def test_from_images_a_repeated_spec_part_is_refused_naming_it(
+    make_server: Callable[..., LiveServer], tmp_path: Path
+) -> None:
+    srv = make_server(tasks={**TEST_TASKS, "learn_images": TEST_TASKS["sleepy"]})
+    url = "/v1/objects/from-images"
+    img = ("a.png", png(), "image/png")
+    mask = ("m.png", png(channels=1), "image/png")
+    two = [("images", img), ("images", img)]
+    files_before = stored_files(tmp_path / "var")
+    with httpx.Client(base_url=srv.url, timeout=30) as c:
+        # The last spec was used and the others dropped: a spec for three
+        # views followed by one for two was a 202 for two images.
+        r = c.post(url, files=two, data={"spec": [_spec(3), _spec(2)]})
+        assert "send exactly one spec" in assert_problem(r, 422, "spec")["detail"]
+        r = c.post(url, files=two, data={"spec": [_spec(2), _spec(2)]})
+        assert_problem(r, 422, "spec")
+        # Sent once as text and once as a file is sent twice.
+        r = c.post(url, files=[*two, ("spec", ("s.json", _spec(2)))], data={"spec": _spec(2)})
+        assert_problem(r, 422, "spec")
+        # Refused before anything is stored or a job started.
+        assert c.get("/v1/objects").json() == {"objects": []}
+        assert stored_files(tmp_path / "var") == files_before
+        # Images and masks are one part per photo, as before.
+        r = c.post(url, files=[*two, ("masks", mask), ("masks", mask)], data={"spec": _spec(2)})
+        assert r.status_code == 202, r.text
+        assert r.json()["object"]["training_views"] == 2
 
 
 def test_from_images_limit_above_1000_files(make_server: Callable[..., LiveServer]) -> None:
