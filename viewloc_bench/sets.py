@@ -287,11 +287,20 @@ def _jobs(spec: SetSpec) -> list[tuple[int, int, int, bool]]:
     return jobs
 
 
+def asset_digest(name: str) -> str:
+    """SHA-256 (hex) of a benchmark object's committed mesh file."""
+    return hashlib.sha256(shapes.asset_path(name).read_bytes()).hexdigest()
+
+
 def _object_entry(name: str) -> dict[str, Any]:
     shape = shapes.SHAPES[name]()
     mesh = shapes.to_trimesh(shape)
     return {
         "mesh": shapes.ASSET_FILES[name],
+        # The set's name hashes its parameters, not its objects' shapes; a
+        # set is learned from the committed meshes (load_generated), so one
+        # drawn with other meshes must be drawn anew (_drawn_with_current_meshes).
+        "mesh_sha256": asset_digest(name),
         "diameter_mm": shapes.diameter_mm(mesh),
         "symmetries_discrete": [np.asarray(s).reshape(-1).tolist() for s in shape.sym_discrete],
         "symmetries_continuous": [
@@ -406,7 +415,8 @@ def generate(
     threads: int = 1,
     log: Callable[[str], None] | None = print,
 ) -> Path:
-    """Generate a set into ``root/<name>-<hash>/`` unless it is already there.
+    """Generate a set into ``root/<name>-<hash>/`` unless it is already there,
+    drawn with the objects' committed meshes (else it is drawn anew).
 
     Parameters
     ----------
@@ -422,7 +432,10 @@ def generate(
     """
     folder = Path(root) / f"{spec.name}-{spec_hash(spec, seed)}"
     if (folder / "gt.json").exists():
-        return folder
+        if _drawn_with_current_meshes(folder):
+            return folder
+        if log is not None:
+            log(f"  {spec.name}: {folder.name} was drawn with other meshes: drawing it anew")
     tmp = folder.with_name(folder.name + ".partial")
     shutil.rmtree(tmp, ignore_errors=True)
     (tmp / "mask_visib").mkdir(parents=True)
@@ -461,6 +474,15 @@ def generate(
     shutil.rmtree(folder, ignore_errors=True)
     tmp.rename(folder)
     return folder
+
+
+def _drawn_with_current_meshes(folder: Path) -> bool:
+    """Whether a generated set's images show its objects' committed meshes:
+    each object's recorded ``mesh_sha256`` is theirs. Sets drawn before the
+    digest was recorded pass (their shapes had not changed since)."""
+    gt = json.loads((folder / "gt.json").read_text())
+    return all(entry.get("mesh_sha256") in (None, asset_digest(name))
+               for name, entry in gt["objects"].items())
 
 
 def load_object(

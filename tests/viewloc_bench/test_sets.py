@@ -3,6 +3,8 @@
 import dataclasses
 import hashlib
 import json
+import shutil
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -206,6 +208,39 @@ def test_novel_spec_is_the_hard_scenes_with_new_objects() -> None:
     assert set(sets.SPECS) <= set(cli.ALL_SETS) <= set(sets.SPECS) | {
         "hard-mono", "hard-hd", "hard-photos", "lmo", "lmo-grey"}
     assert cli.ALL_SETS.index("novel") == cli.ALL_SETS.index("hard") + 1
+
+
+def _copied_set(folder: Path, root: Path,
+                objects_edit: Callable[[dict[str, dict[str, object]]], object]) -> Path:
+    """A copy of a generated set under ``root`` with its gt.json's objects edited."""
+    copy = root / folder.name
+    shutil.copytree(folder, copy)
+    gt = json.loads((copy / "gt.json").read_text())
+    objects_edit(gt["objects"])
+    (copy / "gt.json").write_text(json.dumps(gt))
+    return copy
+
+
+def test_a_set_drawn_with_another_mesh_is_drawn_anew(tiny_paper_set: Path, tmp_path: Path):
+    gt = json.loads((tiny_paper_set / "gt.json").read_text())
+    assert gt["objects"]["barbell"]["mesh_sha256"] == sets.asset_digest("barbell")
+    copy = _copied_set(tiny_paper_set, tmp_path,
+                       lambda objs: objs["barbell"].update(mesh_sha256="0" * 64))
+    logged: list[str] = []
+    assert sets.generate(tiny_paper_spec(), 7, tmp_path, log=logged.append) == copy
+    assert any("drawn with other meshes" in line for line in logged)
+    redrawn = json.loads((copy / "gt.json").read_text())
+    assert redrawn["objects"]["barbell"]["mesh_sha256"] == sets.asset_digest("barbell")
+    assert redrawn["images"] == gt["images"]
+
+
+def test_a_set_drawn_before_digests_were_recorded_is_kept(tiny_paper_set: Path, tmp_path: Path):
+    copy = _copied_set(tiny_paper_set, tmp_path,
+                       lambda objs: objs["barbell"].pop("mesh_sha256"))
+    before = (copy / "gt.json").read_text()
+    logged: list[str] = []
+    assert sets.generate(tiny_paper_spec(), 7, tmp_path, log=logged.append) == copy
+    assert logged == [] and (copy / "gt.json").read_text() == before
 
 
 def test_shop_spec_is_the_hard_scenes_with_parts_no_other_set_has() -> None:
