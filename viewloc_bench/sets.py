@@ -479,7 +479,7 @@ def generate(
 def _drawn_with_current_meshes(folder: Path) -> bool:
     """Whether a generated set's images show its objects' committed meshes:
     each object's recorded ``mesh_sha256`` is theirs. Sets drawn before the
-    digest was recorded pass (their shapes had not changed since)."""
+    digest was recorded pass: nothing was recorded to check them against."""
     gt = json.loads((folder / "gt.json").read_text())
     return all(entry.get("mesh_sha256") in (None, asset_digest(name))
                for name, entry in gt["objects"].items())

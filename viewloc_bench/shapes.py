@@ -20,6 +20,7 @@ from numpy.typing import NDArray
 from scipy.interpolate import CubicSpline
 
 from viewloc_core.metrics import symmetry_transforms
+from viewloc_core.pose import rotation_about_axis
 
 Array = NDArray[np.float64]
 
@@ -460,9 +461,8 @@ PLATE_HOLES_MM = ((15.0, 45.0, 6.0), (50.0, 14.0, 5.0), (82.0, 29.0, 3.5))
 
 def _turn_about_y(angle_deg: float) -> Array:
     """(4, 4) rotation by ``angle_deg`` about the object's y axis."""
-    c, s = np.cos(np.radians(angle_deg)), np.sin(np.radians(angle_deg))
     out = np.eye(4)
-    out[:3, :3] = [[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]]
+    out[:3, :3] = rotation_about_axis(np.array([0.0, 1.0, 0.0]), np.radians(angle_deg))
     return out
 
 

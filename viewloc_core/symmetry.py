@@ -206,10 +206,8 @@ class _SurfaceTest:
         # Sampling alone leaves probe points this far from the reference set.
         self.base_mean = float(base.mean())
         self.base_p99 = float(np.percentile(base, 99))
-        k = max(1, int(2 * len(base) * _TOP_SHARE))
-        # The probes' own farthest share, as top_gap_mm measures the moved
-        # ones (both ways: twice the probes).
-        self.base_top = float(np.sort(np.concatenate([base, base]))[-k:].mean())
+        # The probes' own farthest share, as top_gap_mm measures the moved ones.
+        self.base_top = _top_mean(base)
         self.tol = tol_mm
 
     def _distances(self, pts: Array) -> Array:
@@ -237,25 +235,35 @@ class _SurfaceTest:
         probes moved by ``T`` (and its inverse) from the surface, beyond the
         same of the unmoved probes, mm: how far a small feature the transform
         does not map onto itself (a bolt head's corners) lies off."""
-        d = self._both_ways(T)
-        k = max(1, int(len(d) * _TOP_SHARE))
-        return float(np.partition(d, len(d) - k)[-k:].mean()) - self.base_top
+        return _top_mean(self._both_ways(T)) - self.base_top
 
     def maps(self, T: Array) -> bool:
         """Whether ``T`` is a symmetry: it passes :meth:`accepts` and no
         small feature shows it (see ``_VISIBLE_TURN_GAP``)."""
-        return self.accepts(T) and self.top_gap_mm(T) < _VISIBLE_TURN_GAP * self.tol
+        d = self._close_distances(T)
+        return d is not None and _top_mean(d) - self.base_top < _VISIBLE_TURN_GAP * self.tol
 
     def accepts(self, T: Array) -> bool:
+        return self._close_distances(T) is not None
+
+    def _close_distances(self, T: Array) -> Array | None:
+        """The distances of :meth:`_both_ways` when their mean and 99th
+        percentile are within tolerance, else None."""
         quick = self.probe[: max(50, len(self.probe) // 10)]
         d_quick = self._distances(quick @ T[:3, :3].T + T[:3, 3])
         if d_quick.mean() - self.base_mean > 3.0 * self.tol:
-            return False
+            return None
         d = self._both_ways(T)
-        return bool(
-            d.mean() - self.base_mean < self.tol
-            and np.percentile(d, 99) - self.base_p99 < 3.0 * self.tol
-        )
+        if (d.mean() - self.base_mean < self.tol
+                and np.percentile(d, 99) - self.base_p99 < 3.0 * self.tol):
+            return d
+        return None
+
+
+def _top_mean(distances: Array) -> float:
+    """Mean of the largest hundredth (``_TOP_SHARE``, at least one) of ``distances``."""
+    k = max(1, int(len(distances) * _TOP_SHARE))
+    return float(np.partition(distances, len(distances) - k)[-k:].mean())
 
 
 def surface_centroid(mesh: trimesh.Trimesh) -> Array:
