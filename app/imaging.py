@@ -126,11 +126,6 @@ def _jpeg_size(data: bytes) -> tuple[int, int] | None:
     return None
 
 
-def _has_bmp_core_header(data: bytes) -> bool:
-    """Whether a BMP file's DIB header is the 12-byte OS/2 core header."""
-    return _bmp_header_bytes(data) == _BMP_CORE_HEADER_BYTES
-
-
 def _imread_flags(data: bytes, fmt: str) -> int:
     """How cv2.imdecode should read the file.
 
@@ -140,7 +135,7 @@ def _imread_flags(data: bytes, fmt: str) -> int:
     (a BMP has neither 16-bit samples nor EXIF): OpenCV's BMP reader types
     every such file grey under UNCHANGED, turning a 24-bit colour image grey.
     """
-    if fmt == "bmp" and _has_bmp_core_header(data):
+    if fmt == "bmp" and _bmp_header_bytes(data) == _BMP_CORE_HEADER_BYTES:
         return cv2.IMREAD_COLOR
     return cv2.IMREAD_UNCHANGED
 
