@@ -41,6 +41,7 @@ from viewloc_core.localize import (
     SPARE_MIN_VIEW_EVIDENCE_SHARE,
     TILT_MIN_GAIN,
     LocalizeOptions,
+    _answer_rank,
     _ColourScene,
     _contour_model,
     _convincing,
@@ -48,6 +49,7 @@ from viewloc_core.localize import (
     _FitOptions,
     _Fitted,
     _Interior,
+    _LevelAnswer,
     _Located,
     _LocationFit,
     _non_increasing,
@@ -942,4 +944,112 @@ def test_parts_localized_in_one_prepared_scene_get_their_own_answers(
                 assert np.array_equal(got.pose.R_m2c, want.pose.R_m2c)
                 assert np.array_equal(got.pose.t_m2c, want.pose.t_m2c)
         scene.release()
-        assert len(extracted) == 1 and len(built) == 1
+        # Once on the level, and once on the image itself if a part's
+        # search settled nothing on the level (localize_in_scene).
+        assert [a.shape[:2] for a in extracted] in ([(300, 400)], [(300, 400), (480, 640)])
+        assert len(built) == 1
+
+
+def _refined_fit(tag: int, chance_corrected: float, settled: bool) -> _Fitted:
+    """A refined fit, settled or confirmed short of it (see _settled)."""
+    score = 0.95 if settled else GOOD_FIT_FRACTION - 0.05
+    return _fit(score, True, tag, chance_corrected=chance_corrected)
+
+
+def test_a_search_that_settles_nothing_on_its_level_is_repeated_on_a_finer_one(
+        monkeypatch) -> None:
+    # The answer of the level (factor 0.625 for 640x480) stands when its
+    # best fit settles; otherwise the image itself is searched too, and its
+    # answer replaces the level's when its best fit settles and ranks higher.
+    camera = Camera(600.0, 600.0, 319.5, 239.5, 640, 480)
+    image = np.random.default_rng(3).integers(0, 255, (480, 640), dtype=np.uint8)
+    scene = prepare_scene(image, camera, edges=False)
+    assert scene.factor < 1.0
+    searched: list[float] = []
+
+    def run(answers, options=None):
+        def on_level(model, on_scene, opts):
+            searched.append(on_scene.factor)
+            best = answers[len(searched) - 1]
+            return _LevelAnswer([] if best is None else [best.detection], best, {})
+        searched.clear()
+        monkeypatch.setattr(localize_module, "_localize_on_level", on_level)
+        monkeypatch.setattr(localize_module, "refines", lambda model, opts: opts.refine)
+        return localize_in_scene(None, scene, options or LocalizeOptions())
+
+    settled, settled_better = _refined_fit(0, 0.9, True), _refined_fit(1, 0.95, True)
+    assert _settled(settled) and _settled(settled_better)
+    result = run([settled, settled_better])
+    assert searched == [scene.factor] and result.detections == [settled.detection]
+    assert "finer_search" not in result.timing_ms
+    doubtful, doubtful_better = _refined_fit(2, 0.7, False), _refined_fit(3, 0.8, False)
+    assert not _settled(doubtful) and not _settled(doubtful_better)
+    result = run([doubtful, settled])
+    assert searched == [scene.factor, 1.0] and result.detections == [settled.detection]
+    assert result.timing_ms["finer_search"] > 0.0
+    # The finer search's fit must settle to overrule, and rank higher.
+    assert run([doubtful, doubtful_better]).detections == [doubtful.detection]
+    assert run([None, doubtful]).detections == []
+    assert run([None, settled]).detections == [settled.detection]
+    assert run([doubtful, None]).detections == [doubtful.detection]
+    confirmed_short = _refined_fit(4, 0.97, False)
+    assert run([confirmed_short, settled]).detections == [confirmed_short.detection]
+    # Without refinement nothing settles and nothing is searched again.
+    run([doubtful, settled], LocalizeOptions(refine=False))
+    assert searched == [scene.factor]
+    # An image no larger than the level is searched once.
+    small = Camera(300.0, 300.0, 191.5, 143.5, 384, 288)
+    scene = prepare_scene(image[:288, :384], small, edges=False)
+    assert scene.factor == 1.0 and scene.at_finer_level() is scene
+    run([doubtful, settled])
+    assert searched == [1.0]
+
+
+def test_the_finer_level_finds_its_features_once_and_shares_the_pyramid(monkeypatch) -> None:
+    camera = Camera(600.0, 600.0, 319.5, 239.5, 640, 480)
+    image = np.random.default_rng(4).integers(0, 255, (480, 640, 3), dtype=np.uint8)
+    built = []
+    edges = localize_module.prepare_edges
+    monkeypatch.setattr(localize_module, "prepare_edges",
+                        lambda *args: built.append(args) or edges(*args))
+    scene = prepare_scene(image, camera)
+    assert scene.has_finer_level()
+    finer = scene.at_finer_level()
+    assert finer is scene.at_finer_level() and not finer.has_finer_level()
+    # Up to 640x480 the finer level is the image itself.
+    assert finer.factor == 1.0 and finer.level is scene.image and finer.camera is scene.camera
+    assert finer.features.edge_distance.shape == (480, 640)
+    assert scene.features.edge_distance.shape == (300, 400)
+    assert finer.edges() is scene.edges()
+    assert len(built) == 1
+    scene.release()
+
+
+@pytest.mark.parametrize(("width", "height", "finer_shape"),
+                         [(1280, 960, (480, 640)), (500, 400, (400, 500)), (384, 288, None)])
+def test_larger_images_are_searched_again_on_a_level_of_640_px(width, height,
+                                                                finer_shape) -> None:
+    camera = Camera(600.0, 600.0, (width - 1) / 2, (height - 1) / 2, width, height)
+    image = np.random.default_rng(5).integers(0, 255, (height, width), dtype=np.uint8)
+    scene = prepare_scene(image, camera, edges=False)
+    assert scene.has_finer_level() == (finer_shape is not None)
+    finer = scene.at_finer_level()
+    if finer_shape is None:
+        assert finer is scene
+    else:
+        assert finer.level.shape == finer_shape
+        assert finer.factor == pytest.approx(finer_shape[1] / width)
+
+
+def test_refined_fits_of_two_searches_compare_without_their_evidence() -> None:
+    # The view search's evidence is measured on each level's own edges: two
+    # searches' best fits compare by what their refinements confirmed.
+    weak_evidence = _fit(0.9, True, 0, chance_corrected=0.85, evidence=10.0)
+    strong_evidence = _fit(0.9, True, 1, chance_corrected=0.8, evidence=1000.0)
+    assert _answer_rank(weak_evidence) > _answer_rank(strong_evidence)
+    standing_out = replace(strong_evidence, figure_ground=FIGURE_GROUND_FULL)
+    assert _answer_rank(standing_out) == pytest.approx(0.8 + FIGURE_GROUND_WEIGHT)
+    assert _answer_rank(_fit(0.99, False, 2)) < _answer_rank(_fit(0.5, True, 3, 0.1))
+    # In colour, as _ranked orders them: contour plus relative colour.
+    coloured = _coloured(weak_evidence, 0.4)
+    assert _answer_rank(coloured) == pytest.approx(0.9 + COLOUR_WEIGHT * 0.5)
