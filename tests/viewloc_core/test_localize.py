@@ -967,11 +967,11 @@ def test_a_search_that_settles_nothing_on_its_level_is_repeated_on_a_finer_one(
     assert scene.factor < 1.0
     searched: list[float] = []
 
-    def run(answers, options=None):
+    def run(answers, options=None, in_colour=False):
         def on_level(model, on_scene, opts):
             searched.append(on_scene.factor)
             best = answers[len(searched) - 1]
-            return _LevelAnswer([] if best is None else [best.detection], best, {})
+            return _LevelAnswer([] if best is None else [best.detection], best, in_colour, {})
         searched.clear()
         monkeypatch.setattr(localize_module, "_localize_on_level", on_level)
         monkeypatch.setattr(localize_module, "refines", lambda model, opts: opts.refine)
@@ -994,6 +994,9 @@ def test_a_search_that_settles_nothing_on_its_level_is_repeated_on_a_finer_one(
     assert run([doubtful, None]).detections == [doubtful.detection]
     confirmed_short = _refined_fit(4, 0.97, False)
     assert run([confirmed_short, settled]).detections == [confirmed_short.detection]
+    # In colour, fits rank by the colour and not by settling: searched once.
+    assert run([doubtful, settled], in_colour=True).detections == [doubtful.detection]
+    assert searched == [scene.factor]
     # Without refinement nothing settles and nothing is searched again.
     run([doubtful, settled], LocalizeOptions(refine=False))
     assert searched == [scene.factor]
