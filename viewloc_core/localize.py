@@ -2082,15 +2082,13 @@ class _LevelAnswer:
 
 def _answer_rank(fit: _Fitted) -> float:
     """How a search's best fit compares with another search's of the same
-    image: its refinement's inlier fraction corrected for chance plus the
-    figure-ground bonus, or in colour its colour rank, as :func:`_ranked`
-    orders fits; without the view search's evidence, which is measured on
-    each level's own edges. A fit whose refinement failed ranks below every
-    refined one."""
+    image where the part's colours are no cue (:func:`localize_in_scene`):
+    its refinement's inlier fraction corrected for chance plus the
+    figure-ground bonus, as :func:`_ranked` orders such fits, without the
+    view search's evidence, which each level measures on its own edges. A
+    fit whose refinement failed ranks below every refined one."""
     if not fit.detection.refined:
         return -1.0
-    if fit.expected_colour_agreement is not None:
-        return _colour_rank(fit)
     return (fit.chance_corrected or 0.0) + fit.figure_ground_bonus
 
 

@@ -1053,6 +1053,3 @@ def test_refined_fits_of_two_searches_compare_without_their_evidence() -> None:
     standing_out = replace(strong_evidence, figure_ground=FIGURE_GROUND_FULL)
     assert _answer_rank(standing_out) == pytest.approx(0.8 + FIGURE_GROUND_WEIGHT)
     assert _answer_rank(_fit(0.99, False, 2)) < _answer_rank(_fit(0.5, True, 3, 0.1))
-    # In colour, as _ranked orders them: contour plus relative colour.
-    coloured = _coloured(weak_evidence, 0.4)
-    assert _answer_rank(coloured) == pytest.approx(0.9 + COLOUR_WEIGHT * 0.5)
