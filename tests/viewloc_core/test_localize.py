@@ -60,6 +60,7 @@ from viewloc_core.localize import (
     _refine_levels,
     _settled,
     _Shading,
+    _spare_bar_share,
     _spare_locations,
     _surface,
     _tilted_refit,
@@ -308,6 +309,28 @@ def test_a_spare_location_competes_only_with_a_convincing_refinement() -> None:
                            in_colour=True)
     assert _convincing(_fit(0.8, True, 3, chance_corrected=SPARE_MIN_CHANCE_CORRECTED_IN_COLOUR),
                        in_colour=True)
+
+
+def test_a_request_accepting_less_of_the_contour_holds_spares_to_a_bar_lowered_alike() -> None:
+    # A part a third hidden, fitted at a spare location: 0.65 of its contour
+    # confirmed, 0.56 beyond chance. The default bar keeps it out; a request
+    # whose min_score is 5/6 of the model's default lowers the bar to 5/6.
+    hidden = _fit(0.65, True, 1, chance_corrected=0.56)
+    assert not _convincing(hidden)
+    share = _spare_bar_share(0.5, 0.6)
+    assert share == pytest.approx(0.5 / 0.6)
+    assert _convincing(hidden, bar_share=share)
+    assert not _convincing(_fit(0.6, True, 2, chance_corrected=0.49), bar_share=share)
+    # The default, or a stricter min_score, leaves the bar as it is.
+    assert _spare_bar_share(0.6, 0.6) == 1.0
+    assert _spare_bar_share(0.9, 0.6) == 1.0
+    assert not _convincing(hidden, bar_share=_spare_bar_share(0.9, 0.6))
+    # The colour scenes' higher bar is lowered in the same proportion.
+    coloured = _fit(0.8, True, 3, chance_corrected=SPARE_MIN_CHANCE_CORRECTED_IN_COLOUR * share)
+    assert not _convincing(coloured, in_colour=True)
+    assert _convincing(coloured, in_colour=True, bar_share=share)
+    # A model without a default bar leaves it whole.
+    assert _spare_bar_share(0.3, 0.0) == 1.0
 
 
 def test_a_fit_that_stands_out_from_its_surroundings_outranks_a_shadow_like_one() -> None:
