@@ -1818,10 +1818,9 @@ def _settled(fit: _Fitted) -> bool:
 def _convincing(fit: _Fitted, in_colour: bool = False, bar_share: float = 1.0) -> bool:
     """Whether a spare location's fit may compete (see SPARE_MIN_CHANCE_CORRECTED
     and, in a colour scene, SPARE_MIN_CHANCE_CORRECTED_IN_COLOUR), the bar
-    times ``bar_share`` (at most 1; see :func:`_spare_bar_share`)."""
+    times ``bar_share`` (:func:`_spare_bar_share`)."""
     bar = SPARE_MIN_CHANCE_CORRECTED_IN_COLOUR if in_colour else SPARE_MIN_CHANCE_CORRECTED
-    return (fit.chance_corrected is not None
-            and fit.chance_corrected >= bar * min(bar_share, 1.0))
+    return fit.chance_corrected is not None and fit.chance_corrected >= bar * bar_share
 
 
 def _spare_bar_share(min_score: float, default_min_score: float) -> float:
