@@ -369,7 +369,8 @@ class ColourProposal:
 
 
 def propose(log_ratio: F32, half_sizes_px: NDArray[np.floating], count: int,
-            within: NDArray[np.floating] | None = None) -> list[ColourProposal]:
+            within: NDArray[np.floating] | None = None,
+            exclusion_halves: float = 1.0) -> list[ColourProposal]:
     """The image windows whose colours the part explains best.
 
     Parameters
@@ -383,12 +384,16 @@ def propose(log_ratio: F32, half_sizes_px: NDArray[np.floating], count: int,
     within : (4,) array, optional
         ``x0, y0, x1, y1``: only windows centred in this rectangle (pixels)
         are proposed; their sums still read the pixels outside it.
+    exclusion_halves : float
+        Each proposal keeps later ones from being centred within this many
+        of its window's half sides of its centre, on either axis (1: outside
+        its window).
 
     Returns
     -------
     list of ColourProposal
         Best first, only windows with a positive sum; each centre lies
-        outside the windows of the proposals before it.
+        outside the exclusion squares of the proposals before it.
 
     Notes
     -----
@@ -427,7 +432,7 @@ def propose(log_ratio: F32, half_sizes_px: NDArray[np.floating], count: int,
             break
         half = float(best_half[y, x])
         proposals.append(ColourProposal(float(x), float(y), half, value))
-        r = max(1, int(round(half)))
+        r = max(1, int(round(exclusion_halves * half)))
         best[max(0, y - r):y + r + 1, max(0, x - r):x + r + 1] = -np.inf
     return proposals
 

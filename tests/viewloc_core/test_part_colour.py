@@ -182,6 +182,30 @@ def test_the_best_window_is_the_part_with_about_its_size() -> None:
     assert strengths == sorted(strengths, reverse=True)
 
 
+def test_a_region_of_the_parts_colour_larger_than_the_part_takes_one_proposal_apart() -> None:
+    # A patch of the part's colour twice the part's size, and the part (half
+    # side 10 px) elsewhere: windows up to a quarter of the part's diameter
+    # (half 12 at most here). Kept outside the window alone, every proposal
+    # lands on the large patch; kept a part's radius apart (two half sides),
+    # the second is the part.
+    hist = _histogram_of(ORANGE)
+    img = _scene_with_patch(ORANGE, (100, 150), 20)
+    img[195:216, 300:321] = ORANGE
+    ratio = pc.log_ratio_map(img, hist)
+    assert ratio is not None
+    halves = np.geomspace(2.0, 12.0, 16)
+
+    def on_part(p: pc.ColourProposal) -> bool:
+        return abs(p.x - 310) <= 4 and abs(p.y - 205) <= 4
+
+    near = pc.propose(ratio, halves, 3)
+    assert len(near) == 3 and not any(on_part(p) for p in near)
+    assert all(abs(p.x - 100) <= 20 and abs(p.y - 150) <= 20 for p in near)
+    apart = pc.propose(ratio, halves, 3, exclusion_halves=2.0)
+    assert abs(apart[0].x - near[0].x) <= 1 and abs(apart[0].y - near[0].y) <= 1
+    assert on_part(apart[1])
+
+
 def test_the_centroid_moves_to_the_middle_of_the_parts_colours() -> None:
     hist = _histogram_of(ORANGE)
     img = _scene_with_patch(ORANGE, (200, 150), 20)
