@@ -183,11 +183,11 @@ def test_the_best_window_is_the_part_with_about_its_size() -> None:
 
 
 def test_a_region_of_the_parts_colour_larger_than_the_part_takes_one_proposal_apart() -> None:
-    # A patch of the part's colour twice the part's size, and the part (half
-    # side 10 px) elsewhere: windows up to a quarter of the part's diameter
-    # (half 12 at most here). Kept outside the window alone, every proposal
-    # lands on the large patch; kept a part's radius apart (two half sides),
-    # the second is the part.
+    # A patch of the part's colour twice the part's size (half side 20 px),
+    # and the part (half side 10 px) elsewhere; windows of half sides 2-12
+    # px. Kept outside the window alone, every proposal lands on the large
+    # patch; kept two half sides apart (a part's radius when the window is
+    # a quarter of its diameter), the second is the part.
     hist = _histogram_of(ORANGE)
     img = _scene_with_patch(ORANGE, (100, 150), 20)
     img[195:216, 300:321] = ORANGE
