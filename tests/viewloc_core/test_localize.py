@@ -30,6 +30,7 @@ from viewloc_core.localize import (
     FIGURE_GROUND_FULL,
     FIGURE_GROUND_WEIGHT,
     FINAL_REFINE,
+    FINER_SEARCH_NEEDLESS_FRACTION,
     FIRST_FIT_MIN_FIGURE_GROUND,
     GOOD_FIT_FRACTION,
     MIN_COLOUR_AGREEMENT,
@@ -58,6 +59,7 @@ from viewloc_core.localize import (
     _pose_centred,
     _ranked,
     _refine_levels,
+    _resolved,
     _settled,
     _Shading,
     _spare_bar_share,
@@ -1017,6 +1019,21 @@ def test_a_search_that_settles_nothing_on_its_level_is_repeated_on_a_finer_one(
     assert run([doubtful, None]).detections == [doubtful.detection]
     confirmed_short = _refined_fit(4, 0.97, False)
     assert run([confirmed_short, settled]).detections == [confirmed_short.detection]
+    # A fit that confirms FINER_SEARCH_NEEDLESS_FRACTION of its contour both
+    # plainly and beyond chance has resolved the outline on this level, settled
+    # or not (its inside looks like its surroundings): searched once.
+    bar = FINER_SEARCH_NEEDLESS_FRACTION
+    resolved = replace(_fit(bar, True, 5, chance_corrected=bar),
+                       figure_ground=FIRST_FIT_MIN_FIGURE_GROUND - 0.01)
+    assert not _settled(resolved) and _resolved(resolved)
+    assert run([resolved, settled_better]).detections == [resolved.detection]
+    assert searched == [scene.factor]
+    for short in (replace(resolved, chance_corrected=bar - 0.01),
+                  replace(resolved, detection=replace(resolved.detection, score=bar - 0.01)),
+                  replace(resolved, detection=replace(resolved.detection, refined=False))):
+        assert not _resolved(short)
+        run([short, settled])
+        assert searched == [scene.factor, 1.0]
     # In colour, fits rank by the colour and not by settling: searched once.
     assert run([doubtful, settled], in_colour=True).detections == [doubtful.detection]
     assert searched == [scene.factor]
