@@ -83,9 +83,27 @@ def _chromaticity_histogram(rgb: NDArray[np.generic], full_scale: float) -> NDAr
     return hist / max(float(hist.sum()), 1e-12)
 
 
-def _ring_pixels(camera: Camera, pose: Pose, samples: SurfaceSamples,
-                 rgb: NDArray[np.generic]) -> NDArray[np.generic] | None:
-    """Colours (N, 3) of the ring just outside the part's projected outline."""
+def ring_values(camera: Camera, pose: Pose, samples: SurfaceSamples,
+                rgb: NDArray[np.generic]) -> NDArray[np.generic] | None:
+    """The values of an image in the ring just outside the part's projected
+    outline (:data:`RING_GAP_SHARE`, :data:`RING_WIDTH_SHARE`).
+
+    Parameters
+    ----------
+    camera : Camera
+        The camera of ``rgb`` (its size matches it).
+    pose : Pose
+        Object -> camera, the frame of ``samples``.
+    samples : SurfaceSamples
+    rgb : (H, W, C) or (H, W) array
+        An image, or any per-pixel map (a colour posterior).
+
+    Returns
+    -------
+    (N, C) or (N,) array or None
+        The ring's pixels inside the image; None when the part is behind
+        the camera, would fill the view, or lies wholly outside it.
+    """
     points = samples.points_mm @ pose.R_m2c.T + pose.t_m2c
     z = points[:, 2]
     if len(points) == 0 or float(z.min()) <= 0.0:
@@ -170,7 +188,7 @@ def figure_ground_contrast(image: NDArray[np.generic], camera: Camera, pose: Pos
     i = np.clip(np.round(uv[:, 1]).astype(np.int64), 0, height - 1)
     j = np.clip(np.round(uv[:, 0]).astype(np.int64), 0, width - 1)
     inside = rgb[i, j]
-    around = _ring_pixels(camera, pose, samples, rgb)
+    around = ring_values(camera, pose, samples, rgb)
     if around is None or len(around) < MIN_PIXELS:
         return None
     full = _full_scale(rgb.dtype)

@@ -113,14 +113,14 @@ def test_a_large_part_is_ringed_on_a_coarser_grid_with_the_same_contrast(scene, 
     diameter_px = CAM.fx * samples.extent_mm / pose.t_m2c[2]
     monkeypatch.setattr(figure_ground, "MAX_RING_DIAMETER_PX", diameter_px / (step - 0.5))
     seen = []
-    original = figure_ground._ring_pixels
+    original = figure_ground.ring_values
 
     def ring_pixels(*args):
         pixels = original(*args)
         seen.append(len(pixels))
         return pixels
 
-    monkeypatch.setattr(figure_ground, "_ring_pixels", ring_pixels)
+    monkeypatch.setattr(figure_ground, "ring_values", ring_pixels)
     coarse = figure_ground_contrast(with_part, CAM, pose, samples)
     assert coarse == pytest.approx(full, abs=0.05) and coarse > 0.3
     assert figure_ground_contrast(shadow, CAM, pose, samples) < 0.05

@@ -25,6 +25,8 @@ from viewloc_core.detection import Detection, Similarity2D
 from viewloc_core.features import extract_features
 from viewloc_core.learn import LearningConfig, learn_from_mesh
 from viewloc_core.localize import (
+    COLOUR_LEAK_FLOOR,
+    COLOUR_LEAK_WEIGHT,
     COLOUR_WEIGHT,
     EVIDENCE_WEIGHT,
     FIGURE_GROUND_FULL,
@@ -279,6 +281,50 @@ def test_a_fits_colour_counts_against_what_the_parts_own_colours_get_in_the_scen
     other = _fit(0.80, True, 1, chance_corrected=0.7)
     ranked = _ranked([_coloured(fit, 0.5, 0.55), _coloured(other, 0.6, 0.55)], by_colour=True)
     assert [d.model_view for d in ranked] == [1, 0]
+
+
+def test_colour_fits_of_places_rank_lower_when_the_parts_colour_runs_on_beyond_them() -> None:
+    # Two places whose contour and colour rank alike: the one with the
+    # part's colour running on beyond its outline (a fit shifted onto the
+    # part's visible half, or on a larger region of its colours) ranks
+    # second, by its excess over the floor, scaled by how rare the part's
+    # colours are in the scene.
+    inside = _coloured(_fit(0.80, True, 0, chance_corrected=0.7), 0.85, expected=0.9)
+    beside = _coloured(_fit(0.82, True, 1, chance_corrected=0.7), 0.85, expected=0.9)
+    leak = COLOUR_LEAK_FLOOR + 0.3
+    assert [d.model_view for d in _ranked([inside, beside], by_colour=True)] == [1, 0]
+    beside = replace(beside, colour_leak=leak)
+    inside = replace(inside, colour_leak=COLOUR_LEAK_FLOOR)
+    assert inside.colour_leak_penalty == 0.0
+    assert beside.colour_leak_penalty == pytest.approx(COLOUR_LEAK_WEIGHT * 0.8 * 0.3)
+    assert [d.model_view for d in _ranked([inside, beside], by_colour=True)] == [0, 1]
+    # Around a part of common colours the ring is part-like anyway: no penalty.
+    common = [replace(f, expected_colour_agreement=0.5, colour_agreement=0.47)
+              for f in (inside, beside)]
+    assert common[1].colour_leak_penalty == 0.0
+    assert [d.model_view for d in _ranked(common, by_colour=True)] == [1, 0]
+    # It orders fits only: alone, the leaking fit is still reported.
+    assert [d.model_view for d in _ranked([beside], by_colour=True)] == [1]
+    # Without a colour cue nothing is measured and nothing taken.
+    assert _fit(0.8, True, 2, chance_corrected=0.7).colour_leak_penalty == 0.0
+
+
+def test_a_fit_beside_the_part_has_its_colour_just_outside_the_outline(orange_scene) -> None:
+    # The orange bracket among boxes: at its true pose the ring just outside
+    # its outline holds little orange; moved a third of its size across the
+    # image, its outline cuts through the part and the ring holds the rest.
+    shading, camera, truth = orange_scene
+    assert shading.colour is not None
+    at_truth = shading.colour.leak(camera, truth, shading.samples)
+    step_mm = 0.3 * shading.samples.extent_mm
+    beside = shading.colour.leak(camera, Pose(truth.R_m2c, truth.t_m2c + [0.0, step_mm, 0.0]),
+                                 shading.samples)
+    assert at_truth is not None and beside is not None
+    assert at_truth < COLOUR_LEAK_FLOOR < beside
+    assert beside > at_truth + 0.1
+    # A part wholly outside the image has no ring to read.
+    away = Pose(truth.R_m2c, truth.t_m2c + [10.0 * truth.t_m2c[2], 0.0, 0.0])
+    assert shading.colour.leak(camera, away, shading.samples) is None
 
 
 def test_spare_locations_are_the_next_ones_with_enough_of_the_best_evidence() -> None:
