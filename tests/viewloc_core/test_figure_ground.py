@@ -115,12 +115,12 @@ def test_a_large_part_is_ringed_on_a_coarser_grid_with_the_same_contrast(scene, 
     seen = []
     original = figure_ground.ring_values
 
-    def ring_pixels(*args):
+    def counted_ring_values(*args):
         pixels = original(*args)
         seen.append(len(pixels))
         return pixels
 
-    monkeypatch.setattr(figure_ground, "ring_values", ring_pixels)
+    monkeypatch.setattr(figure_ground, "ring_values", counted_ring_values)
     coarse = figure_ground_contrast(with_part, CAM, pose, samples)
     assert coarse == pytest.approx(full, abs=0.05) and coarse > 0.3
     assert figure_ground_contrast(shadow, CAM, pose, samples) < 0.05
