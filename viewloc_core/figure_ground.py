@@ -84,18 +84,18 @@ def _chromaticity_histogram(rgb: NDArray[np.generic], full_scale: float) -> NDAr
 
 
 def ring_values(camera: Camera, pose: Pose, samples: SurfaceSamples,
-                rgb: NDArray[np.generic]) -> NDArray[np.generic] | None:
+                image: NDArray[np.generic]) -> NDArray[np.generic] | None:
     """The values of an image in the ring just outside the part's projected
     outline (:data:`RING_GAP_SHARE`, :data:`RING_WIDTH_SHARE`).
 
     Parameters
     ----------
     camera : Camera
-        The camera of ``rgb`` (its size matches it).
+        The camera of ``image`` (its size matches it).
     pose : Pose
         Object -> camera, the frame of ``samples``.
     samples : SurfaceSamples
-    rgb : (H, W, C) or (H, W) array
+    image : (H, W, C) or (H, W) array
         An image, or any per-pixel map (a colour posterior).
 
     Returns
@@ -110,7 +110,7 @@ def ring_values(camera: Camera, pose: Pose, samples: SurfaceSamples,
         return None
     depth = float(np.median(z))
     diameter_px = camera.fx * samples.extent_mm / depth
-    if diameter_px > 2 * max(rgb.shape[:2]):
+    if diameter_px > 2 * max(image.shape[:2]):
         return None  # the part would fill the view: no surroundings to compare
     uv = camera.project(points)
     # A part larger than MAX_RING_DIAMETER_PX (a large camera image) is
@@ -119,9 +119,9 @@ def ring_values(camera: Camera, pose: Pose, samples: SurfaceSamples,
     # while the cost stops growing with the part's area.
     step = max(1, math.ceil(diameter_px / MAX_RING_DIAMETER_PX))
     if step > 1:
-        rgb = rgb[::step, ::step]
+        image = image[::step, ::step]
         uv = uv / step
-    height, width_img = rgb.shape[:2]
+    height, width_img = image.shape[:2]
     gap = max(2, round(RING_GAP_SHARE * diameter_px / step))
     width = max(3, round(RING_WIDTH_SHARE * diameter_px / step))
     # The samples are spacing_mm apart on the surface: discs that wide
@@ -145,7 +145,7 @@ def ring_values(camera: Camera, pose: Pose, samples: SurfaceSamples,
     cx0, cy0 = max(x0, 0), max(y0, 0)
     cx1, cy1 = min(x1, width_img), min(y1, height)
     ring = ring[cy0 - y0:cy1 - y0, cx0 - x0:cx1 - x0]
-    return rgb[cy0:cy1, cx0:cx1][ring]
+    return image[cy0:cy1, cx0:cx1][ring]
 
 
 def figure_ground_contrast(image: NDArray[np.generic], camera: Camera, pose: Pose,
