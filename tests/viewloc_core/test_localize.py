@@ -26,6 +26,8 @@ from viewloc_core.features import extract_features
 from viewloc_core.learn import LearningConfig, learn_from_mesh
 from viewloc_core.localize import (
     COLOUR_LEAK_FLOOR,
+    COLOUR_LEAK_MAX,
+    COLOUR_LEAK_MIN_RARITY,
     COLOUR_LEAK_WEIGHT,
     COLOUR_WEIGHT,
     EVIDENCE_WEIGHT,
@@ -291,22 +293,49 @@ def test_colour_fits_of_places_rank_lower_when_the_parts_colour_runs_on_beyond_t
     # colours are in the scene.
     inside = _coloured(_fit(0.80, True, 0, chance_corrected=0.7), 0.85, expected=0.9)
     beside = _coloured(_fit(0.82, True, 1, chance_corrected=0.7), 0.85, expected=0.9)
-    leak = COLOUR_LEAK_FLOOR + 0.3
+    leak = COLOUR_LEAK_FLOOR + 0.1
     assert [d.model_view for d in _ranked([inside, beside], by_colour=True)] == [1, 0]
     beside = replace(beside, colour_leak=leak)
     inside = replace(inside, colour_leak=COLOUR_LEAK_FLOOR)
     assert inside.colour_leak_penalty == 0.0
-    assert beside.colour_leak_penalty == pytest.approx(COLOUR_LEAK_WEIGHT * 0.8 * 0.3)
+    assert beside.colour_leak_penalty == pytest.approx(COLOUR_LEAK_WEIGHT * 0.8 * 0.1)
     assert [d.model_view for d in _ranked([inside, beside], by_colour=True)] == [0, 1]
     # Around a part of common colours the ring is part-like anyway: no penalty.
     common = [replace(f, expected_colour_agreement=0.5, colour_agreement=0.47)
               for f in (inside, beside)]
     assert common[1].colour_leak_penalty == 0.0
     assert [d.model_view for d in _ranked(common, by_colour=True)] == [1, 0]
-    # It orders fits only: alone, the leaking fit is still reported.
+    # Under COLOUR_LEAK_MAX it orders fits only: alone, the leaking fit is
+    # still reported.
+    assert leak < COLOUR_LEAK_MAX
     assert [d.model_view for d in _ranked([beside], by_colour=True)] == [1]
     # Without a colour cue nothing is measured and nothing taken.
     assert _fit(0.8, True, 2, chance_corrected=0.7).colour_leak_penalty == 0.0
+
+
+def test_a_fit_beyond_whose_outline_the_parts_rare_colours_run_on_is_not_reported() -> None:
+    # The part's colours are rare in the scene (its own colours get 0.9):
+    # half as much of them just outside the outline as under it puts the
+    # fit on a larger region of those colours, not on the part.
+    rare = _coloured(_fit(0.85, True, 0, chance_corrected=0.8), 0.85, expected=0.9)
+    assert rare.colour_rarity == pytest.approx(0.8)
+    assert rare.colour_rarity >= COLOUR_LEAK_MIN_RARITY
+    within = replace(rare, colour_leak=COLOUR_LEAK_MAX - 0.01)
+    beyond = replace(_coloured(_fit(0.95, True, 1, chance_corrected=0.9), 0.9, expected=0.9),
+                     colour_leak=COLOUR_LEAK_MAX)
+    assert not within.leaks_rare_colour and beyond.leaks_rare_colour
+    assert [d.model_view for d in _ranked([within, beyond], by_colour=True)] == [0]
+    assert _ranked([beyond], by_colour=True) == []
+    # Around a part of common colours (its own get 0.7: rarity 0.4) the ring
+    # is part-like whether the fit is right or not: the fit stays.
+    common = replace(beyond, colour_agreement=0.7, expected_colour_agreement=0.7,
+                     colour_leak=0.9)
+    assert common.colour_rarity < COLOUR_LEAK_MIN_RARITY and not common.leaks_rare_colour
+    assert [d.model_view for d in _ranked([common], by_colour=True)] == [1]
+    # Without a ring measured (off the image) nothing is taken; without
+    # the colour cue nothing is gated.
+    assert not replace(beyond, colour_leak=None).leaks_rare_colour
+    assert [d.model_view for d in _ranked([beyond])] == [1]
 
 
 def test_a_fit_beside_the_part_has_its_colour_just_outside_the_outline(orange_scene) -> None:
