@@ -87,6 +87,13 @@ def _rows(uv, normals):
     return uv[order], normals[order]
 
 
+#: The compiled fit and the array form sum in different orders, and four
+#: reweighted least-squares rounds carry the rounding on: a draw of
+#: Hypothesis's put them 3e-9 apart (an agreement of 0.385). A change of
+#: the arithmetic itself moves the agreement by far more than this.
+AGREEMENT_TOLERANCE = 1e-6
+
+
 @settings(max_examples=40, deadline=None)
 @given(st.integers(0, 2**31 - 1), st.integers(0, 1), st.integers(0, 1),
        st.floats(-250.0, 250.0), st.floats(-200.0, 200.0), st.floats(250.0, 1500.0))
@@ -111,7 +118,7 @@ def test_visible_samples_and_agreement_are_the_array_forms(seed, part, lens, x, 
     got = shading_agreement(image, camera, pose, samples)
     assert (got is None) == (expected is None)
     if got is not None:
-        assert got == pytest.approx(expected, abs=1e-9)
+        assert got == pytest.approx(expected, abs=AGREEMENT_TOLERANCE)
     # A patterned part: each sample's albedo scales its harmonics.
     albedo = rng.uniform(0.1, 0.9, len(samples.points_mm))
     patterned = replace(samples, albedo=albedo)
@@ -120,7 +127,7 @@ def test_visible_samples_and_agreement_are_the_array_forms(seed, part, lens, x, 
     got = shading_agreement(image, camera, pose, patterned)
     assert (got is None) == (expected is None)
     if got is not None:
-        assert got == pytest.approx(expected, abs=1e-9)
+        assert got == pytest.approx(expected, abs=AGREEMENT_TOLERANCE)
 
 
 def test_nothing_is_seen_behind_the_camera_or_outside_the_image():
