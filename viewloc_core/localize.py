@@ -1074,7 +1074,8 @@ class _Fitted:
     colour_leak : float or None
         Mean P(part | colour) just outside the pose's outline over the
         agreement the part's own colours get in the scene
-        (:meth:`_ColourScene.leak`); None without a colour cue.
+        (:meth:`_ColourScene.leak`); None without a colour cue or with too
+        little of that ring in the image (then neither ranks nor gates it).
     """
 
     detection: Detection
