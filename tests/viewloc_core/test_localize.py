@@ -315,8 +315,8 @@ def test_colour_fits_of_places_rank_lower_when_the_parts_colour_runs_on_beyond_t
 
 def test_a_fit_beyond_whose_outline_the_parts_rare_colours_run_on_is_not_reported() -> None:
     # The part's colours are rare in the scene (its own colours get 0.9):
-    # half as much of them just outside the outline as under it puts the
-    # fit on a larger region of those colours, not on the part.
+    # a ring just outside the outline holding half of that agreement puts
+    # the fit on a larger region of those colours, not on the part.
     rare = _coloured(_fit(0.85, True, 0, chance_corrected=0.8), 0.85, expected=0.9)
     assert rare.colour_rarity == pytest.approx(0.8)
     assert rare.colour_rarity >= COLOUR_LEAK_MIN_RARITY
