@@ -46,6 +46,7 @@ from viewloc_core.localize import (
     SPARE_MIN_VIEW_EVIDENCE_SHARE,
     TILT_MIN_GAIN,
     LocalizeOptions,
+    _after_the_first_convincing,
     _answer_rank,
     _ColourScene,
     _contour_model,
@@ -408,6 +409,31 @@ def test_a_request_accepting_less_of_the_contour_holds_spares_to_a_bar_lowered_a
     assert _convincing(coloured, in_colour=True, bar_share=share)
     # A model without a default bar leaves it whole.
     assert _spare_bar_share(0.3, 0.0) == 1.0
+
+
+def test_detections_after_the_first_are_held_to_the_spares_bar() -> None:
+    # The best fit is reported on its own merits; each further one must
+    # confirm its contour beyond chance as a spare location's fit must, or
+    # it is dropped (and its place goes to the next location).
+    best = _fit(0.80, True, 0, chance_corrected=0.55)
+    copy = _fit(0.90, True, 1, chance_corrected=SPARE_MIN_CHANCE_CORRECTED)
+    weak = _fit(0.70, True, 2, chance_corrected=SPARE_MIN_CHANCE_CORRECTED - 0.05)
+    failed = _fit(0.75, False, 3)
+    fits = [best, copy, weak, failed]
+    ranked = [f.detection for f in fits]
+    kept = _after_the_first_convincing(ranked, fits, in_colour=False, bar_share=1.0)
+    assert [d.model_view for d in kept] == [0, 1]
+    # The weak fit passes a bar lowered for a request accepting less of the
+    # contour; a failed refinement never does.
+    lowered = _after_the_first_convincing(ranked, fits, in_colour=False, bar_share=0.9)
+    assert [d.model_view for d in lowered] == [0, 1, 2]
+    # In colour the bar is the colour scenes' spares' bar.
+    assert [d.model_view for d in _after_the_first_convincing(
+        ranked, fits, in_colour=True, bar_share=1.0)] == [0]
+    # Whatever its own fit, the first stays first, alone or not.
+    assert _after_the_first_convincing(ranked[2:], fits, False, 1.0) == ranked[2:3]
+    assert _after_the_first_convincing(ranked[3:], fits, False, 1.0) == ranked[3:]
+    assert _after_the_first_convincing([], fits, False, 1.0) == []
 
 
 def test_a_fit_that_stands_out_from_its_surroundings_outranks_a_shadow_like_one() -> None:
