@@ -2417,7 +2417,8 @@ def _localize_on_level(model: ObjectModel, scene: Scene,
 
     def answer() -> list[Detection]:
         """The first max_detections of the ranked fits that are each a part
-        of its own (:func:`_distinct`)."""
+        of its own (:func:`_distinct`), those after the first as convincing
+        as a spare's (:func:`_after_the_first_convincing`, refined fits)."""
         # A fit whose rotation is undetermined is not reported, but it does
         # not send the search on to further places either: fitting more
         # places found other chance fits on part-free images (paper, hard
