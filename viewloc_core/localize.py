@@ -2001,7 +2001,8 @@ def _after_the_first_convincing(ranked: list[Detection], fits: list[_Fitted],
     ALIGNED_LOCATIONS_PER_DETECTION; detections elsewhere 38 -> 32 over
     three runs, one copy fewer found where it confirmed too little).
     ``fits`` holds the fits of the detections; an unrefined one is not
-    convincing. One detection wanted gets the first, as before.
+    convincing. Only a request for several detections needs this: one
+    wanted is the first ranked.
     """
     if len(ranked) < 2:
         return ranked
@@ -2431,7 +2432,7 @@ def _localize_on_level(model: ObjectModel, scene: Scene,
                           and f.determined(options.rotation_std_limit_deg)
                           and _in_search_space(f.detection, model, camera, options)],
                          by_colour=colour is not None)
-        if contour is not None:
+        if contour is not None and options.max_detections > 1:
             ranked = _after_the_first_convincing(ranked, fits, colour is not None, bar_share)
         return _distinct(ranked, model, camera, surface, options.max_detections)
 
