@@ -234,12 +234,12 @@ MIN_ALIGNED_LOCATIONS = 5
 #: learning seed 0 78 / 14 / 0.753 -> 82 / 12 / 0.784; learning seed 1
 #: 79 / 16 / 0.784 -> 78 / 13 / 0.784; learning seed 2 82 / 13 / 0.794 ->
 #: 81 / 11 / 0.794; scenes drawn with seed 1 86 / 8 / 0.8625 -> 86 / 7 /
-#: 0.8625. The view search's median 11 -> 15 ms an
-#: image, the total 120 / 130 -> 135 / 131 ms (alternating runs, seed 0).
-#: Three asked for where one part lies (hard bench set, seed 0): 191 -> 174
-#: detections (78 right first both), median 158 -> 177-186 ms (the fill
-#: loop fits further places for the dropped ones). One detection wanted is
-#: unchanged: 4 + 1 is MIN_ALIGNED_LOCATIONS.
+#: 0.8625. The view search's median 11 -> 15 ms an image, the total 120 /
+#: 130 -> 135 / 131 ms (alternating runs, seed 0). Three asked for where
+#: one part lies (hard bench set, seed 0): 191 -> 174 detections (78 right
+#: first both), median 158 -> 177-186 ms (the fill loop fits further places
+#: for the dropped ones). One detection wanted is unchanged: 4 + 1 is
+#: MIN_ALIGNED_LOCATIONS.
 ALIGNED_LOCATIONS_PER_DETECTION = 4
 
 #: A spare location's fit (see ``localize``) competes with the first ones only
