@@ -2339,6 +2339,8 @@ def _localize_on_level(model: ObjectModel, scene: Scene,
     timing["align"] = (t3 - t2) * 1e3
 
     min_score = model.default_min_score if options.min_score is None else options.min_score
+    # The spares' bar, and the further detections' (_after_the_first_convincing).
+    bar_share = _spare_bar_share(min_score, model.default_min_score)
     # Pass 1: per image location, the training views that explain it best.
     templates = view_templates(model)
     located = []
@@ -2406,7 +2408,6 @@ def _localize_on_level(model: ObjectModel, scene: Scene,
     # Colour locations compete with the alignment's by the colour under the
     # fit (see _ranked).
     fitted = each_on_both(fit, first + (colour_located if colour is not None else []))
-    bar_share = _spare_bar_share(min_score, model.default_min_score)
     fits, colour_fits = fitted[:len(first)], fitted[len(first):]
     spares: list[_Located] = []
     # A fit outside the request's region or depth range is not an answer,
