@@ -29,7 +29,6 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial import cKDTree
 
 from viewloc_core.errors import InvalidImageError
 from viewloc_core.feature_kernels import (
@@ -48,6 +47,7 @@ from viewloc_core.feature_kernels import (
     window_bin_counts,
 )
 from viewloc_core.gradient import image_gradient
+from viewloc_core.near_pairs import pairs_within
 from viewloc_core.u_junctions import u_junctions
 
 F32 = NDArray[np.float32]
@@ -693,11 +693,12 @@ def _junctions(seg: F32, config: FeatureConfig) -> tuple[_Parts, NDArray[np.int6
     ends = np.concatenate([seg[:, :2], seg[:, 2:]]).astype(np.float64)  # (2n, 2)
     length = np.hypot(seg[:, 2] - seg[:, 0], seg[:, 3] - seg[:, 1]).astype(np.float64)
     owner = np.concatenate([np.arange(n), np.arange(n)])
-    max_gap = config.junction_gap_frac * float(length.max()) + config.junction_gap_px
-    pairs = cKDTree(ends).query_pairs(max_gap, output_type="ndarray")
-    if len(pairs) == 0:
+    # Each end reaches as far as its own segment allows: the gap test below
+    # takes the shorter segment's.
+    reach = config.junction_gap_frac * length[owner] + config.junction_gap_px
+    a, b = pairs_within(ends, reach, within_both=True)
+    if len(a) == 0:
         return none
-    a, b = pairs[:, 0], pairs[:, 1]
     sa, sb = owner[a], owner[b]
     ok = sa != sb
     # Rows of (N, 2) arrays are gathered with np.take and np.compress here
@@ -773,16 +774,15 @@ def _parallel_pairs(seg: F32, config: FeatureConfig) -> _Parts:
     u = d / length[:, None]
     ang = np.mod(np.arctan2(u[:, 1], u[:, 0]), np.pi)
     # Midpoints of a valid pair are at most (separation + length) apart, and
-    # the separation is limited to twice the longer segment below.
-    radius = 2.5 * float(length.max())
-    pairs = cKDTree(mid).query_pairs(radius, output_type="ndarray")
-    if len(pairs) == 0:
+    # the separation is limited to twice the longer segment below: within
+    # sqrt(5) of the longer segment's length.
+    first, second = pairs_within(mid, 2.5 * length, within_both=False)
+    if len(first) == 0:
         return _no_parts()
-    # The pairs' geometry in one compiled pass, in kdtree order (as numpy
+    # The pairs' geometry in one compiled pass, in the pairs' order (as numpy
     # over all pairs it was a dozen temporaries of thousands of rows, 3 ms
     # of a 400x300 textured image's features); the angles and logs stay
     # numpy's, whose last bits numba's do not always reproduce.
-    first, second = np.ascontiguousarray(pairs.T)
     i, j, dirn, xy, sep, overlap = parallel_pair_parts(
         p1, p2, mid, length, u, ang, first, second,
         float(np.radians(config.parallel_max_angle_deg)))

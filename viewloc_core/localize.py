@@ -30,6 +30,7 @@ from viewloc_core import (
     contour_kernels,
     feature_kernels,
     gauss_newton_kernel,
+    near_pairs,
     normal_search,
     pairing,
     part_colour,
@@ -891,6 +892,7 @@ def warm_up() -> None:
     """Compile the pipeline's numba kernels now (a service calls this at
     start-up, so that no request waits for the compiler)."""
     feature_kernels.warm_up()
+    near_pairs.warm_up()
     similarity_fit.warm_up()
     seeding.warm_up()
     pairing.warm_up()
