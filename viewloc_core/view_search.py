@@ -297,11 +297,36 @@ def _screen(feats: ImageFeatures, templates: ViewTemplates, sims: F64, chance: C
     if n_pairs <= PRESCREEN_MIN_PAIRS:
         return _score_coarse_grid(feats, templates, sims, chance)
     pre = _score_coarse_grid(feats, templates, sims, chance, PRESCREEN_POINTS)
-    n_kept = int(PRESCREEN_KEPT * n_pairs)
-    kept = np.argpartition(-pre, n_kept)[:n_kept]
+    kept = _largest(pre, int(PRESCREEN_KEPT * n_pairs))
     llr = np.full(n_pairs, -np.inf)
     llr[kept] = _score_coarse(feats, templates, kept % n_views, sims[kept // n_views], chance)
     return llr
+
+
+#: :func:`_largest` reads every this many values first, and looks for the
+#: largest among those at least as large as a threshold the sample gives.
+LARGEST_SAMPLE_STRIDE = 16
+
+
+def _largest(values: F64, n: int) -> NDArray[np.int64]:
+    """Indices of the ``n`` largest of ``values`` (0 < ``n`` < their number),
+    in no particular order; of equal values at the ``n``-th place, which
+    are taken is not defined.
+
+    Selecting them among all 105,000 of a real photo's colour locations
+    took 1.3-1.8 ms, 15 times an image (LM-O). The largest values lie
+    above a threshold a strided sample gives (chosen with half as many
+    again as its share of them, so that nearly always at least ``n`` values
+    pass): the selection runs on those, about a tenth of the cost, and on
+    all values when too few pass.
+    """
+    sample = values[::LARGEST_SAMPLE_STRIDE]
+    in_sample = min(len(sample), int(1.5 * n / LARGEST_SAMPLE_STRIDE) + 1)
+    threshold = np.partition(sample, len(sample) - in_sample)[len(sample) - in_sample]
+    passed = np.flatnonzero(values >= threshold)
+    if len(passed) < n:
+        return np.argpartition(-values, n)[:n]
+    return passed[np.argpartition(-values[passed], n - 1)[:n]]
 
 
 def best_member(

@@ -311,3 +311,19 @@ def test_a_views_best_is_read_from_its_column_as_a_scatter_maximum_finds_it(data
     entries = row[columns] * n_views + columns
     expected = _best_entries_by_scatter(np.tile(view_ids, n_sims), llr, count)
     assert entries.tolist() == expected.tolist()
+
+
+@given(seed=st.integers(0, 2**31 - 1), size=st.integers(2, 3000), share=st.floats(0.0, 1.0),
+       levels=st.sampled_from([None, 3, 50]))
+def test_largest_are_the_largest(seed: int, size: int, share: float, levels: int | None) -> None:
+    # Any values (few distinct ones: ties at the n-th place; -inf among
+    # them, as a screen's), any n: the values taken are the n largest.
+    rng = np.random.default_rng(seed)
+    values = rng.normal(size=size)
+    if levels is not None:
+        values = np.floor(values * levels / 4.0)
+    values[rng.random(size) < 0.2] = -np.inf
+    n = min(size - 1, max(1, int(share * size)))
+    taken = view_search._largest(values, n)
+    assert len(np.unique(taken)) == n
+    np.testing.assert_array_equal(np.sort(values[taken]), np.sort(values)[-n:])
