@@ -5,6 +5,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+import trimesh
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
@@ -72,6 +73,7 @@ from viewloc_core.localize import (
     _surface,
     _tilted_refit,
     _view_candidate_count,
+    _visible_first,
     _wider_look,
     localize,
     localize_in_scene,
@@ -81,6 +83,7 @@ from viewloc_core.near_symmetry import NearSymmetries
 from viewloc_core.pose import Pose, rotation_angle_deg
 from viewloc_core.refine import RefinementResult, RefineOptions, prepare_edges, refine_pose
 from viewloc_core.render import prepare
+from viewloc_core.shading import surface_samples
 from viewloc_core.symmetry import Symmetries
 from viewloc_core.view_search import ViewCandidate
 from viewloc_core.view_sphere import view_directions
@@ -434,6 +437,36 @@ def test_detections_after_the_first_are_held_to_the_spares_bar() -> None:
     assert _after_the_first_convincing(ranked[2:], fits, False, 1.0) == ranked[2:3]
     assert _after_the_first_convincing(ranked[3:], fits, False, 1.0) == ranked[3:]
     assert _after_the_first_convincing([], fits, False, 1.0) == []
+
+
+def test_a_fit_hidden_behind_a_better_confirmed_one_ranks_after_the_rest() -> None:
+    # A block 120 x 80 x 40 mm face on at 600 mm, and a far copy of it (2400
+    # mm) whose outline lies inside the near one's, fitted to its inner
+    # edges: ranked first (by colour, say), it goes after every fit not
+    # hidden, whatever their order. A copy at the same depth beside it is
+    # not hidden; nor is a far copy whose cover confirms less of its contour.
+    mesh = trimesh.creation.box((120.0, 80.0, 40.0))
+    samples = surface_samples(np.asarray(mesh.vertices), np.asarray(mesh.faces))
+    camera = Camera(600.0, 600.0, 319.5, 239.5, 640, 480)
+    offset = np.array([0.0, 0.0, 10.0])  # the model's origin 10 mm off its centre
+
+    def placed(score: float, tag: int, centre_mm: tuple[float, float, float],
+               refined: bool = True) -> Detection:
+        det = _fit(score, refined, tag).detection
+        return replace(det, pose=Pose(np.eye(3), np.array(centre_mm) - offset))
+
+    far = placed(0.70, 0, (10.0, 0.0, 2400.0))
+    near = placed(0.95, 1, (0.0, 0.0, 600.0))
+    beside = placed(0.80, 2, (400.0, 0.0, 1200.0))
+    ranked = _visible_first([far, beside, near], offset, camera, samples)
+    assert [d.model_view for d in ranked] == [2, 1, 0]
+    # The near fit confirming less, or unrefined: nothing moves.
+    weaker = replace(near, score=0.65)
+    assert _visible_first([far, beside, weaker], offset, camera, samples) == [far, beside, weaker]
+    unrefined = replace(near, refined=False)
+    assert _visible_first([far, unrefined], offset, camera, samples) == [far, unrefined]
+    # Without the part's surface (no mesh) the ranking stands.
+    assert _visible_first([far, near], offset, camera, None) == [far, near]
 
 
 def test_a_fit_that_stands_out_from_its_surroundings_outranks_a_shadow_like_one() -> None:
