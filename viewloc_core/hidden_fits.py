@@ -13,6 +13,10 @@ the whole part's silhouette takes in its lighter parts and some background
 at the rim (LM-O's driller rendered at its true poses over plain grey: in 15
 of 54 images the first-ranked fit was such a copy inside the whole drill's
 fit, whose contour was confirmed 0.89-1.00 against the copy's 0.62-0.75).
+Ranked after the fits not hidden (:func:`viewloc_core.localize._visible_first`),
+the driller over grey is found in 2D in 0.97 of its 200 images instead of
+0.77 (AR_MSSD 0.722 -> 0.952); LM-O's photos, the photos with the targets
+pasted in and the generated bench sets kept every record.
 """
 
 from __future__ import annotations
