@@ -2117,6 +2117,15 @@ def _non_increasing(detections: list[Detection]) -> list[Detection]:
     return out
 
 
+def _centred_poses(detections: list[Detection],
+                   origin_offset_mm: NDArray[np.float64]) -> list[Pose]:
+    """The detections' poses in the centred frame the fits were made in (that
+    of the surface samples): the model's origin moved by ``origin_offset_mm``
+    (:attr:`ObjectModel.origin_offset_mm`)."""
+    return [Pose(d.pose.R_m2c, d.pose.t_m2c + d.pose.R_m2c @ origin_offset_mm)
+            for d in detections]
+
+
 def _visible_first(detections: list[Detection], origin_offset_mm: NDArray[np.float64],
                    camera: Camera, samples: SurfaceSamples | None) -> list[Detection]:
     """The ranked detections, those that would lie hidden behind another
@@ -2125,18 +2134,17 @@ def _visible_first(detections: list[Detection], origin_offset_mm: NDArray[np.flo
     detections only, in their order).
 
     If the nearer part is there, the farther one cannot be seen; and the
-    nearer one's contour is the better confirmed. A far copy of a large part fitted to
-    the part's own inner edges shows nothing but the part's colours, and
-    out-ranked the whole part in a colour scene (LM-O's driller rendered
-    over plain grey, every 4th image: 15 of 54 first fits).
+    nearer one's contour is the better confirmed. A far copy of a large
+    part fitted to the part's own inner edges shows nothing but the part's
+    colours, and out-ranked the whole part in a colour scene (LM-O's
+    driller rendered over plain grey, every 4th image: 15 of 54 first fits).
     ``origin_offset_mm`` is the model's (:attr:`ObjectModel.origin_offset_mm`),
     ``samples`` its surface samples in the centred frame the fits were made
     in (None: no surface, the detections as they are).
     """
     if samples is None or len(detections) < 2:
         return detections
-    centred = [Pose(d.pose.R_m2c, d.pose.t_m2c + d.pose.R_m2c @ origin_offset_mm)
-               for d in detections]
+    centred = _centred_poses(detections, origin_offset_mm)
     hidden = [d.refined and any(
         other.refined and other.score > d.score
         and lies_hidden_behind(camera, centred[i], centred[j], samples)
@@ -2153,9 +2161,7 @@ def _distinct(detections: list[Detection], model: ObjectModel, camera: Camera,
     of a part already detected (:mod:`viewloc_core.distinct_parts`)."""
     if len(detections) < 2 or limit < 2:
         return detections[:limit]
-    # The surface samples are in the centred frame the fits were made in.
-    centred = [Pose(d.pose.R_m2c, d.pose.t_m2c + d.pose.R_m2c @ model.origin_offset_mm)
-               for d in detections]
+    centred = _centred_poses(detections, model.origin_offset_mm)
     keep = distinct_parts(centred, camera, model.diameter_mm,
                           None if surface is None else surface[0], limit)
     return [detections[i] for i in keep]
