@@ -61,9 +61,17 @@ def share_inside(camera: Camera, inner: Pose, outer: Pose, samples: SurfaceSampl
     # The samples are spacing_mm apart on the surface: discs that wide
     # join into the silhouette (as figure_ground's ring does).
     dot_px = max(1, round(camera.fx * samples.spacing_mm / float(np.median(outer_cam[:, 2]))))
-    x0, y0 = np.floor(outer_uv.min(axis=0)).astype(int) - dot_px - 1
-    x1, y1 = np.ceil(outer_uv.max(axis=0)).astype(int) + dot_px + 2
-    mask = silhouette_mask(outer_uv, int(x0), int(y0), (int(y1 - y0), int(x1 - x0)), dot_px)
+    # The silhouette is drawn where the image is, at most: a pose just in
+    # front of the camera projects its samples thousands of pixels out.
+    # The inner surface beyond the image counts as not inside.
+    margin = dot_px + 1
+    x0 = max(int(np.floor(outer_uv[:, 0].min())) - margin, -margin)
+    y0 = max(int(np.floor(outer_uv[:, 1].min())) - margin, -margin)
+    x1 = min(int(np.ceil(outer_uv[:, 0].max())) + margin + 1, camera.width + margin)
+    y1 = min(int(np.ceil(outer_uv[:, 1].max())) + margin + 1, camera.height + margin)
+    if x1 <= x0 or y1 <= y0:
+        return 0.0
+    mask = silhouette_mask(outer_uv, x0, y0, (y1 - y0, x1 - x0), dot_px)
     col = np.floor(inner_uv[:, 0]).astype(np.int64) - x0
     row = np.floor(inner_uv[:, 1]).astype(np.int64) - y0
     in_box = (col >= 0) & (col < mask.shape[1]) & (row >= 0) & (row < mask.shape[0])

@@ -57,6 +57,19 @@ def test_a_far_copy_beside_the_outline_is_seen(block) -> None:
     assert not lies_hidden_behind(CAMERA, across, near, block)
 
 
+def test_a_pose_just_in_front_of_the_camera_is_drawn_within_the_image(block) -> None:
+    # The block's front face 0.5 mm from the camera projects tens of
+    # thousands of pixels out: its silhouette covers the whole image, and
+    # is not drawn beyond it. A far copy seen in the image lies inside it;
+    # one beyond the image's edge does not.
+    near = Pose(np.eye(3), np.array([0.0, 0.0, 20.5]))
+    assert share_inside(CAMERA, _at((320.0, 240.0), 2400.0), near, block) > 0.99
+    assert share_inside(CAMERA, _at((900.0, 240.0), 2400.0), near, block) == 0.0
+    # Wholly beside the image, it hides nothing in it.
+    beside = _at((-2000.0, 240.0), 600.0)
+    assert share_inside(CAMERA, _at((320.0, 240.0), 2400.0), beside, block) == 0.0
+
+
 def test_a_pose_behind_the_camera_hides_nothing(block) -> None:
     near = _at((320.0, 240.0), 600.0)
     behind = Pose(np.eye(3), np.array([0.0, 0.0, -500.0]))
