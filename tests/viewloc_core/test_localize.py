@@ -443,8 +443,9 @@ def test_a_fit_hidden_behind_a_better_confirmed_one_ranks_after_the_rest() -> No
     # A block 120 x 80 x 40 mm face on at 600 mm, and a far copy of it (2400
     # mm) whose outline lies inside the near one's, fitted to its inner
     # edges: ranked first (by colour, say), it goes after every fit not
-    # hidden, whatever their order. A copy at the same depth beside it is
-    # not hidden; nor is a far copy whose cover confirms less of its contour.
+    # hidden, whatever their order. A copy at 1200 mm beside the near one's
+    # outline is not hidden; nor is a far copy whose cover confirms less of
+    # its contour.
     mesh = trimesh.creation.box((120.0, 80.0, 40.0))
     samples = surface_samples(np.asarray(mesh.vertices), np.asarray(mesh.faces))
     camera = Camera(600.0, 600.0, 319.5, 239.5, 640, 480)
