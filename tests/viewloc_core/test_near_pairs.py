@@ -62,13 +62,15 @@ def test_rejects_a_reach_per_point_missing() -> None:
         pairs_within(np.zeros((3, 2)), np.ones(2), within_both=True)
 
 
-def _all_pairs(xy: np.ndarray, reach: np.ndarray, within_both: bool):
-    """Every pair of rows, as the grouping's candidates."""
+def _all_pairs(xy: np.ndarray, reach: np.ndarray,
+               within_both: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Every pair of rows, as the grouping's candidates (in place of
+    :func:`pairs_within`, whose signature it takes)."""
     i, j = np.triu_indices(len(xy), k=1)
     return i.astype(np.int64), j.astype(np.int64)
 
 
-def _sorted_rows(parts) -> np.ndarray:
+def _sorted_rows(parts: tuple[np.ndarray, ...]) -> np.ndarray:
     rows = np.column_stack([np.asarray(x, np.float64).reshape(len(parts[0]), -1)
                             for x in parts])
     return rows[np.lexsort(rows.T[::-1])]
