@@ -70,6 +70,7 @@ from viewloc_core.localize import (
     _Shading,
     _spare_bar_share,
     _spare_locations,
+    _supported,
     _surface,
     _tilted_refit,
     _view_candidate_count,
@@ -412,6 +413,30 @@ def test_a_request_accepting_less_of_the_contour_holds_spares_to_a_bar_lowered_a
     assert _convincing(coloured, in_colour=True, bar_share=share)
     # A model without a default bar leaves it whole.
     assert _spare_bar_share(0.3, 0.0) == 1.0
+
+
+def test_a_colour_location_only_its_colours_outline_explains_is_held_to_the_spares_bar(
+) -> None:
+    # Colour locations found on the photo's edges compete whatever their
+    # fit; one whose views only the outline of the part's colour explains
+    # competes with a fit convincing in colour (lowered with the request's
+    # min_score, as a spare's).
+    sim = np.array([100.0, 100.0, 0.0, 1.0])
+
+    def located(outline_only: bool) -> _Located:
+        return _Located(Match2D(0, sim, 0.0, 0.9, 10, 50.0), [ViewCandidate(0, sim, 50.0, 0.9)],
+                        outline_only=outline_only)
+
+    bar = SPARE_MIN_CHANCE_CORRECTED_IN_COLOUR
+    weak = _fit(0.8, True, 0, chance_corrected=bar - 0.05)
+    convincing = _fit(0.8, True, 1, chance_corrected=bar)
+    failed = _fit(0.8, False, 2)
+    fits = [weak, convincing, failed]
+    assert _supported(fits, [located(False)] * 3, 1.0) == fits
+    assert _supported(fits, [located(True)] * 3, 1.0) == [convincing]
+    assert _supported(fits, [located(True), located(False), located(True)], 1.0) == [convincing]
+    assert _supported(fits, [located(True)] * 3, (bar - 0.06) / bar) == [weak, convincing]
+    assert _supported([], [], 1.0) == []
 
 
 def test_detections_after_the_first_are_held_to_the_spares_bar() -> None:

@@ -327,10 +327,13 @@ def _orange_disc_in_grey_clutter() -> np.ndarray:
 
 def test_a_colour_location_explained_no_better_than_clutter_is_not_fitted(
         orange_model, monkeypatch):
-    """An orange disc in grey clutter draws the colour proposals; whether it
-    is handed on to be fitted depends on the evidence of its best view
-    (COLOUR_MIN_EVIDENCE): here the views' likelihood ratios are shifted to
-    put the best one just under and just over the bar."""
+    """An orange disc in grey clutter draws the colour proposals; where the
+    part's colours are common in the scene (here its own colours' agreement
+    set to 0.6: rarity 0.2, under COLOUR_OUTLINE_MIN_RARITY) whether it is
+    handed on to be fitted depends on the evidence of its best view on the
+    photo's edges alone (COLOUR_MIN_EVIDENCE): here the views' likelihood
+    ratios are shifted to put the best one just under and just over the
+    bar."""
     import viewloc_core.localize as localize_module
     from viewloc_core.align import AlignConfig
     from viewloc_core.edge_evidence import chance_rates
@@ -338,8 +341,11 @@ def test_a_colour_location_explained_no_better_than_clutter_is_not_fitted(
     from viewloc_core.view_search import view_templates
 
     image = _orange_disc_in_grey_clutter()
-    colour = localize_module._ColourScene.of(orange_model, image, 1.0)
-    assert colour is not None
+    rare_colour = localize_module._ColourScene.of(orange_model, image, 1.0)
+    assert rare_colour is not None
+    colour = replace(rare_colour, expected_agreement=0.6)
+    assert localize_module._rarity(colour.expected_agreement) < (
+        localize_module.COLOUR_OUTLINE_MIN_RARITY)
     feats = extract_features(image)
     search = localize_module.search_views
 
@@ -371,6 +377,69 @@ def test_a_colour_location_explained_no_better_than_clutter_is_not_fitted(
                 if np.hypot(*(loc.candidates[0].sim[:2] - [200.0, 150.0])) < 40]
     assert [loc for loc in located(bar - best + 1.0)
             if np.hypot(*(loc.candidates[0].sim[:2] - [200.0, 150.0])) < 40]
+
+
+def test_a_colour_location_of_rare_colours_without_edges_is_searched_on_its_outline(
+        orange_model, monkeypatch):
+    """Where the part's colours are rare in the scene (the orange disc in
+    grey clutter: agreement about 1) and the photo's edges at a colour
+    location explain no view (its views' evidence shifted under
+    COLOUR_MIN_EVIDENCE), the location is searched on the outline of the
+    part's colour from the same seeds and kept with those views, without
+    rivals; when the outline explains none either (shifted under the bar
+    too), it is not fitted."""
+    import viewloc_core.localize as localize_module
+    from viewloc_core.align import AlignConfig
+    from viewloc_core.edge_evidence import chance_rates
+    from viewloc_core.features import extract_features
+    from viewloc_core.view_search import view_templates
+
+    image = _orange_disc_in_grey_clutter()
+    colour = localize_module._ColourScene.of(orange_model, image, 1.0)
+    assert colour is not None
+    assert localize_module._rarity(colour.expected_agreement) >= (
+        localize_module.COLOUR_OUTLINE_MIN_RARITY)
+    feats = extract_features(image)
+    search = localize_module.search_views
+    bar = localize_module.COLOUR_MIN_EVIDENCE
+
+    def located(outline_shift: float) -> tuple[list, list]:
+        searches: list[tuple[object, np.ndarray, list]] = []
+
+        def shifted(feats_, templates, seeds, *args, **kwargs):
+            found = search(feats_, templates, seeds, *args, **kwargs)
+            # The photo's views all under the bar; the outline's moved by
+            # outline_shift.
+            shift = (bar - 1.0 - max(c.log_likelihood_ratio for c in found) if feats_ is feats
+                     else outline_shift) if found else 0.0
+            found = [replace(c, log_likelihood_ratio=c.log_likelihood_ratio + shift)
+                     for c in found]
+            searches.append((feats_, np.array(seeds), found))
+            return found
+
+        with monkeypatch.context() as patch:
+            patch.setattr(localize_module, "search_views", shifted)
+            out = localize_module._colour_locations(
+                orange_model, colour, feats, view_templates(orange_model),
+                chance_rates(feats), AlignConfig(), [])
+        return out, searches
+
+    kept, searches = located(1e4)
+    near = [loc for loc in kept
+            if np.hypot(*(loc.candidates[0].sim[:2] - [200.0, 150.0])) < 40]
+    assert near
+    photo = [seeds for f, seeds, _ in searches if f is feats]
+    on_outline = {id(found[0]): seeds for f, seeds, found in searches
+                  if f is not feats and found}
+    for loc in kept:
+        # The outline's own views, found from the seeds of a photo search,
+        # with nothing left to rival them.
+        assert id(loc.candidates[0]) in on_outline
+        assert any(np.array_equal(on_outline[id(loc.candidates[0])], s) for s in photo)
+        assert loc.colour_rivals == () and loc.outline_only
+        assert loc.evidence > bar
+    nothing, _ = located(-1e4)
+    assert nothing == []
 
 
 def test_a_colour_location_gets_the_views_of_its_colours_outline(orange_model, monkeypatch):
@@ -424,6 +493,7 @@ def test_a_colour_location_gets_the_views_of_its_colours_outline(orange_model, m
         assert list(loc.colour_rivals) == [c for c in found if c.view not in known]
         assert len(found) <= localize_module.COLOUR_OUTLINE_CANDIDATES
     assert any(loc.colour_rivals for loc in located)
+    assert not any(loc.outline_only for loc in located)
 
 
 def test_every_fit_in_a_colour_scene_meets_the_parts_colour_boundary(
