@@ -1490,6 +1490,14 @@ def _colour_locations(
     tr = model.training
     out: list[_Located] = []
     outline: tuple[ImageFeatures, ChanceRates] | None = None
+
+    def outline_features() -> tuple[ImageFeatures, ChanceRates]:
+        # Made once per image, and only when a location needs it.
+        nonlocal outline
+        if outline is None:
+            outline = colour.outline_features()
+        return outline
+
     rare = _rarity(colour.expected_agreement) >= COLOUR_OUTLINE_MIN_RARITY
     for seeds in colour.seeds(model, config, within):
         step_px = COLOUR_OFFSET_SHARE * float(np.median(seeds[:, 3])) * _train_diameter_px(model)
@@ -1502,9 +1510,7 @@ def _colour_locations(
         if not on_edges:
             if not rare:
                 continue
-            if outline is None:
-                outline = colour.outline_features()
-            outline_feats, outline_chance = outline
+            outline_feats, outline_chance = outline_features()
             candidates = search_views(outline_feats, templates, seeds, outline_chance,
                                       VIEW_CANDIDATES, offsets, COLOUR_KEPT_SEEDS,
                                       COLOUR_SCREEN_ANGLES_DEG, other_side)
@@ -1522,10 +1528,8 @@ def _colour_locations(
                         best.log_likelihood_ratio)
         rivals: tuple[ViewCandidate, ...] = ()
         if on_edges:
-            if outline is None:
-                outline = colour.outline_features()
             known = {c.view for c in candidates}
-            outline_feats, outline_chance = outline
+            outline_feats, outline_chance = outline_features()
             rivals = tuple(c for c in search_views(outline_feats, templates, seeds,
                                                    outline_chance, COLOUR_OUTLINE_CANDIDATES,
                                                    offsets, COLOUR_KEPT_SEEDS,
