@@ -361,6 +361,47 @@ def test_a_fit_beside_the_part_has_its_colour_just_outside_the_outline(orange_sc
     assert shading.colour.leak(camera, away, shading.samples) is None
 
 
+@settings(max_examples=60, deadline=None)
+@given(st.floats(0.05, 60.0))
+def test_colour_offsets_leave_no_point_of_their_square_beyond_the_fits_reach(reach: float) -> None:
+    from viewloc_core.localize import _colour_offsets
+    from viewloc_core.view_search import FIT_RADII_PX
+
+    offsets = _colour_offsets(reach)
+    side = round(math.sqrt(len(offsets)))
+    assert side * side == len(offsets) and side % 2 == 1 and side >= 3
+    # A square grid over the reach each way, centred on the seed.
+    assert np.allclose(offsets.min(axis=0), -reach) and np.allclose(offsets.max(axis=0), reach)
+    assert any(np.allclose(o, 0.0) for o in offsets)
+    # Every point of the square lies within the fit's first reach of an
+    # offset: the worst lie midway between four of them.
+    step = 2.0 * reach / (side - 1)
+    assert step / math.sqrt(2.0) <= FIT_RADII_PX[0] + 1e-9
+    points = np.random.default_rng(0).uniform(-reach, reach, (400, 2))
+    nearest = np.min(np.linalg.norm(points[:, None] - offsets[None], axis=2), axis=1)
+    assert nearest.max() <= FIT_RADII_PX[0] + 1e-9
+    # And no more of them than that takes: one step fewer each way would
+    # leave the middle of a cell beyond it (three by three at the least).
+    if side > 3:
+        coarser = 2.0 * reach / (side - 3)
+        assert coarser / math.sqrt(2.0) > FIT_RADII_PX[0]
+
+
+def test_colour_offsets_are_three_by_three_for_a_small_part_and_finer_for_a_large_one(
+) -> None:
+    from viewloc_core.localize import COLOUR_OFFSET_SHARE, _colour_offsets
+
+    # A 50 px part: 5 px each way, the former 3x3 grid a tenth of its
+    # diameter apart; a 150 px part (LM-O's driller on the searched level):
+    # 7x7, 5 px apart.
+    small = _colour_offsets(COLOUR_OFFSET_SHARE * 50.0)
+    assert len(small) == 9
+    assert np.allclose(np.unique(small[:, 0]), [-5.0, 0.0, 5.0])
+    large = _colour_offsets(COLOUR_OFFSET_SHARE * 150.0)
+    assert len(large) == 49
+    assert np.allclose(np.diff(np.unique(large[:, 0])), 5.0)
+
+
 def test_spare_locations_are_the_next_ones_with_enough_of_the_best_evidence() -> None:
     sim = np.array([100.0, 100.0, 0.0, 1.0])
 
