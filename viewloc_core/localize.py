@@ -1422,12 +1422,16 @@ class _ColourScene:
     expected_agreement : float
         The agreement the part's own colours get in this scene
         (:func:`part_colour.expected_agreement`), in (0, 1).
+    bin_posterior : (N_BINS,) float32
+        P(part | colour) of each colour bin in this scene, to read the
+        posterior of the full-resolution image (:meth:`full_posterior`).
     """
 
     log_ratio: NDArray[np.float32]
     posterior: NDArray[np.float32]
     factor: float
     expected_agreement: float
+    bin_posterior: NDArray[np.float32]
 
     @classmethod
     def of(cls, model: ObjectModel, level: NDArray[np.generic],
@@ -1442,7 +1446,15 @@ class _ColourScene:
         bins, bin_ratio = binned
         log_ratio = bin_ratio[bins]
         return cls(log_ratio, part_colour.posterior(log_ratio), factor,
-                   part_colour.expected_agreement(model.colour_histogram, bin_ratio))
+                   part_colour.expected_agreement(model.colour_histogram, bin_ratio),
+                   part_colour.posterior(bin_ratio))
+
+    def full_posterior(self, image: NDArray[np.generic]) -> NDArray[np.float32]:
+        """P(part | colour) of each pixel of the full-resolution ``image``
+        (the scene's colour statistics as the level gave them), (H, W); the
+        level's :attr:`posterior` when the image has no colours to read."""
+        full = part_colour.posterior_map(image, self.bin_posterior)
+        return self.posterior if full is None else full
 
     def seeds(self, model: ObjectModel, config: AlignConfig,
               within: NDArray[np.float64] | None = None) -> list[NDArray[np.float64]]:
@@ -2525,7 +2537,7 @@ def _localize_on_level(model: ObjectModel, scene: Scene,
         if colour is not None:
             # The part's colour boundary is an edge for every fit in this
             # image (:mod:`viewloc_core.colour_edges`).
-            edges = with_colour_boundary(edges, colour.posterior)
+            edges = with_colour_boundary(edges, colour.full_posterior(arr))
     else:
         colour = None
 

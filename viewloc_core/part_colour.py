@@ -342,6 +342,32 @@ def expected_agreement(histogram: F32, ratio: F32) -> float:
     return float(np.dot(weights, posterior(ratio).astype(np.float64)))
 
 
+def posterior_map(image: NDArray[np.generic], bin_posterior: F32) -> F32 | None:
+    """P(part | colour) of each pixel of ``image``, looked up per colour bin.
+
+    Parameters
+    ----------
+    image : (H, W, 3) uint8 or uint16
+        RGB.
+    bin_posterior : (N_BINS,) float32
+        The posterior of each bin (:func:`posterior` of the ratios
+        :func:`bin_log_ratios` gives), e.g. from a pyramid level of the
+        same scene.
+
+    Returns
+    -------
+    (H, W) float32 or None
+        None for a grey or float image.
+    """
+    rgb = _rgb_uint8(image)
+    if rgb is None:
+        return None
+    table = np.asarray(bin_posterior, np.float32)
+    if table.shape != (N_BINS,):
+        raise InvalidInputError(f"bin posterior must have {N_BINS} bins", "bin_posterior")
+    return table[colour_bins(rgb)]
+
+
 def posterior(log_ratio: F32) -> F32:
     """P(part | colour) with equal priors, from the log ratio, same shape, in (0, 1)."""
     return (1.0 / (1.0 + np.exp(-np.asarray(log_ratio, np.float32)))).astype(np.float32)

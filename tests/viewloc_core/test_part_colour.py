@@ -147,6 +147,29 @@ def test_back_projection_is_positive_on_the_part_and_negative_around_it() -> Non
     assert pc.log_ratio_map(img.astype(np.uint16) * 257, hist) == pytest.approx(ratio)
 
 
+def test_the_posterior_map_reads_each_pixel_by_its_colour_bin() -> None:
+    """The posterior of a full-resolution image from the bins' posteriors a
+    level of the same scene gave: each pixel its bin's value, as the
+    per-pixel posterior of the log ratio map."""
+    from viewloc_core.errors import InvalidInputError
+
+    hist = _histogram_of(ORANGE)
+    img = _scene_with_patch(ORANGE, (250, 120), 12)
+    binned = pc.bin_log_ratios(img, hist)
+    assert binned is not None
+    table = pc.posterior(binned[1])
+    full = pc.posterior_map(img, table)
+    ratio = pc.log_ratio_map(img, hist)
+    assert full is not None and ratio is not None and full.shape == img.shape[:2]
+    assert full == pytest.approx(pc.posterior(ratio))
+    assert full[120, 250] > 0.7 and np.median(full[:, :150]) < 0.5
+    assert pc.posterior_map(img.astype(np.uint16) * 257, table) == pytest.approx(full)
+    assert pc.posterior_map(img[..., 0], table) is None
+    assert pc.posterior_map(img.astype(np.float32), table) is None
+    with pytest.raises(InvalidInputError):
+        pc.posterior_map(img, table[:-1])
+
+
 def test_the_expected_agreement_is_high_for_a_rare_colour_and_low_for_a_common_one() -> None:
     # What the part itself would score depends on the scene: a small orange
     # patch among grey is nearly certain to be the part, a scene half
@@ -501,7 +524,7 @@ def test_every_fit_in_a_colour_scene_meets_the_parts_colour_boundary(
     """With the part's colours known, every refinement of a colour scene runs
     on the edges with the colour boundary added
     (:func:`viewloc_core.colour_edges.with_colour_boundary`, once per image,
-    on the colour cue's posterior); the same scene in grey has no colour cue
+    on the posterior of the full-resolution image); the same scene in grey has no colour cue
     and its fits run on the image's own edges."""
     import viewloc_core.localize as localize_module
 
@@ -515,6 +538,8 @@ def test_every_fit_in_a_colour_scene_meets_the_parts_colour_boundary(
     refine = localize_module.refine_pose
 
     def recorded_boundary(edges, posterior, *args, **kwargs):
+        # The part's colour is read at the image's own resolution.
+        assert posterior.shape == image.shape[:2]
         merged.append(add_boundary(edges, posterior, *args, **kwargs))
         return merged[-1]
 
