@@ -27,6 +27,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from viewloc_core import (
+    colour_kernels,
     contour_kernels,
     feature_kernels,
     gauss_newton_kernel,
@@ -951,6 +952,7 @@ def warm_up() -> None:
     seeding.warm_up()
     pairing.warm_up()
     sample_evidence.warm_up()
+    colour_kernels.warm_up()
     normal_search.warm_up()
     contour_kernels.warm_up()
     gauss_newton_kernel.warm_up()

@@ -164,6 +164,9 @@ def test_the_posterior_map_reads_each_pixel_by_its_colour_bin() -> None:
     assert full == pytest.approx(pc.posterior(ratio))
     assert full[120, 250] > 0.7 and np.median(full[:, :150]) < 0.5
     assert pc.posterior_map(img.astype(np.uint16) * 257, table) == pytest.approx(full)
+    # An RGBA frame's colour channels are a strided view: the same values.
+    rgba = np.dstack([img, np.full(img.shape[:2], 255, np.uint8)])
+    assert np.array_equal(pc.posterior_map(rgba, table), full)
     assert pc.posterior_map(img[..., 0], table) is None
     assert pc.posterior_map(img.astype(np.float32), table) is None
     with pytest.raises(InvalidInputError):
