@@ -561,6 +561,8 @@ COLOUR_SEED_SCALES = (0.8, 1.0, 1.25)
 #: the ±11° the spread orientation map accepts, and each position then
 #: costs a third of the plain screen's three angles.
 COLOUR_OFFSET_SHARE = 0.1
+COLOUR_KEPT_SEEDS = 24
+COLOUR_SCREEN_ANGLES_DEG = (0.0,)
 
 
 def _colour_offsets(reach_px: float) -> NDArray[np.float64]:
@@ -588,8 +590,7 @@ def _colour_offsets(reach_px: float) -> NDArray[np.float64]:
     half_steps = max(1, math.ceil(reach_px / (FIT_RADII_PX[0] * math.sqrt(2.0))))
     steps = np.linspace(-reach_px, reach_px, 2 * half_steps + 1)
     return np.array([(dx, dy) for dy in steps for dx in steps], np.float64)
-COLOUR_KEPT_SEEDS = 24
-COLOUR_SCREEN_ANGLES_DEG = (0.0,)
+
 
 #: Views searched at a colour location on the outline of the part's colour
 #: as well as on the photo's edges (:attr:`_Located.colour_rivals`). In
