@@ -398,3 +398,30 @@ def test_right_place_detections_turned_and_their_depth_error_are_reported(
             "median depth error 2.00%") in table
     # Nothing at the right place: nothing to report.
     assert runner.right_place_errors([{"recognized_2d": False}]) == {}
+
+
+def test_results_broken_down_by_visible_fraction(tiny_paper_set: Path) -> None:
+    bench = sets.load_generated(tiny_paper_set)
+    posed = [im for im in bench.images if im.targets[0].pose is not None]
+    res = runner.evaluate_set(bench, OracleBackend(bench, posed[0].path.name, fp=False),
+                              log=lambda s: None)
+    records = {r["image"]: r for r in res["records"]}
+    # The missed target mostly hidden, the others whole or nearly; a target
+    # whose visible fraction is unknown counts in no band.
+    fractions = [0.2, 0.95, 1.0]
+    for im, fraction in zip(posed, fractions, strict=True):
+        records[im.path.name]["visible_fraction"] = fraction
+    unknown = dict(records[posed[1].path.name], visible_fraction=None)
+    width = posed[0].camera.width
+    bands = runner.summarise_visibility([*records.values(), unknown], bench.objects, width)
+    assert [(b["from"], b["to"], b["targets"]) for b in bands] == [(0.0, 0.4, 1), (0.9, 1.0, 2)]
+    assert bands[0]["recognition_2d"] == 0.0 and bands[1]["recognition_2d"] == 1.0
+    assert bands[1]["per_object"]["barbell"]["targets"] == 2
+    table = runner.format_table("paper", bench, dict(res, by_visibility=bands), "oracle")
+    assert "rec2D by visible fraction: 0-0.4 0.00 (1), 0.9-1 1.00 (2)" in table
+    assert "  barbell: 0-0.4 0.00 (1), 0.9-1 1.00 (2)" in table
+    # A single band says no more than the overall line: not printed.
+    whole = runner.summarise_visibility([records[posed[2].path.name]], bench.objects, width)
+    assert len(whole) == 1
+    assert "visible fraction" not in runner.format_table("paper", bench,
+                                                        dict(res, by_visibility=whole), "oracle")
