@@ -444,6 +444,11 @@ def _fmt(x: Any, spec: str = ".3f") -> str:
     return str(x)
 
 
+def _rate_of(summary: Record) -> str:
+    """A breakdown's entry: its 2D recognition rate and (in brackets) its targets."""
+    return f"{_fmt(summary.get('recognition_2d'), '.2f')} ({summary['targets']})"
+
+
 def format_table(name: str, bench: BenchSet, result: Record | None, header: str) -> str:
     """The printed table of one set (``result`` None: only the set's composition)."""
     lines = [f"== {name} set: {header} =="]
@@ -509,22 +514,16 @@ def format_table(name: str, bench: BenchSet, result: Record | None, header: str)
             f"{c['elsewhere']} elsewhere"
         )
     for key, rows in result.get("by_condition", {}).items():
-        lines.append(
-            f"rec2D by {key}: "
-            + ", ".join(f"{r['value']} {_fmt(r.get('recognition_2d'), '.2f')} ({r['targets']})"
-                        for r in rows)
-        )
+        lines.append(f"rec2D by {key}: "
+                     + ", ".join(f"{r['value']} {_rate_of(r)}" for r in rows))
     bands = result.get("by_visibility", [])
     if len(bands) > 1:
         # One band says nothing more than the overall line.
-        def per_band(row: Record) -> str:
-            return f"{_fmt(row.get('recognition_2d'), '.2f')} ({row['targets']})"
-
         lines.append("rec2D by visible fraction: " + ", ".join(
-            f"{b['from']:g}-{b['to']:g} {per_band(b)}" for b in bands))
+            f"{b['from']:g}-{b['to']:g} {_rate_of(b)}" for b in bands))
         for name in sorted({n for b in bands for n in b["per_object"]}):
             lines.append(f"  {name}: " + ", ".join(
-                f"{b['from']:g}-{b['to']:g} {per_band(b['per_object'][name])}"
+                f"{b['from']:g}-{b['to']:g} {_rate_of(b['per_object'][name])}"
                 for b in bands if name in b["per_object"]))
     if neg.get("by_background"):
         lines.append(
