@@ -143,13 +143,19 @@ class CoreBackend:
         return self._learned(obj, model, time.perf_counter() - t0)
 
     def _learned(self, obj: BenchObject, model: ObjectModel, learn_s: float) -> LearnedObject:
+        from viewloc_core import model as core_model
+
         return LearnedObject(
             obj.name,
             CoreLocalizer(model, self.refine, self.max_detections),
             learn_s,
             _int_or_none(getattr(model, "training_views", None)),
             _int_or_none(getattr(model, "model_views", None)),
-            {"refinable": getattr(model, "contour", None) is not None},
+            # Two runs' figures differ by the models or by the search: the
+            # digest tells which.
+            {"refinable": getattr(model, "contour", None) is not None,
+             "model_sha256": (core_model.model_digest(model)
+                              if isinstance(model, core_model.ObjectModel) else None)},
         )
 
 

@@ -360,6 +360,7 @@ def evaluate_set(
         log(
             f"  {name}: learned in {learned.learn_s:.1f} s, training views "
             f"{learned.training_views}, model views {learned.model_views}"
+            + _model_digest_note(learned.info)
         )
         for im in imgs:
             with Image.open(im.path) as pil:
@@ -442,6 +443,14 @@ def _fmt(x: Any, spec: str = ".3f") -> str:
     if isinstance(x, float):
         return format(x, spec)
     return str(x)
+
+
+def _model_digest_note(info: Record) -> str:
+    """``, model sha256 <first 16 hex digits>`` when the backend knows the
+    learned model's digest (:func:`viewloc_core.model.model_digest`), else
+    nothing."""
+    digest = info.get("model_sha256")
+    return f", model sha256 {digest[:16]}" if digest else ""
 
 
 def _rate_of(summary: Record) -> str:
@@ -533,7 +542,7 @@ def format_table(name: str, bench: BenchSet, result: Record | None, header: str)
     for obj_name, info in result["objects"].items():
         lines.append(
             f"learned {obj_name}: {info['learn_s']:.1f} s, training views {info['training_views']},"
-            f" model views {info['model_views']}"
+            f" model views {info['model_views']}" + _model_digest_note(info)
         )
     return "\n".join(lines)
 

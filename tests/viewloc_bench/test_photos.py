@@ -106,7 +106,9 @@ def test_both_backends_learn_a_part_from_its_photos(
     obj = _bracket()
     photos = render_photos(obj, 12, seed=0)
     core = CoreBackend().learn_photos(obj, photos)
-    assert core.training_views == 12 and core.info == {"refinable": False}
+    assert core.training_views == 12 and core.info["refinable"] is False
+    # The same photos learn the same model.
+    assert CoreBackend().learn_photos(obj, photos).info["model_sha256"] == core.info["model_sha256"]
 
     srv = make_server()
     backend = HttpBackend(srv.url)

@@ -425,3 +425,24 @@ def test_results_broken_down_by_visible_fraction(tiny_paper_set: Path) -> None:
     assert len(whole) == 1
     assert "visible fraction" not in runner.format_table("paper", bench,
                                                         dict(res, by_visibility=whole), "oracle")
+
+
+def test_the_learned_models_digest_is_reported(tiny_paper_set: Path) -> None:
+    bench = sets.load_generated(tiny_paper_set)
+
+    class DigestBackend(OracleBackend):
+        def learn(self, obj: sets.BenchObject) -> LearnedObject:
+            learned = super().learn(obj)
+            learned.info["model_sha256"] = "0123456789abcdef" * 4
+            return learned
+
+    lines: list[str] = []
+    res = runner.evaluate_set(bench, DigestBackend(bench, "", fp=False), log=lines.append)
+    assert res["objects"]["barbell"]["model_sha256"] == "0123456789abcdef" * 4
+    expected = ", model sha256 0123456789abcdef"
+    assert any(line.endswith(expected) for line in lines)
+    table = runner.format_table("paper", bench, res, "oracle").splitlines()
+    assert [line for line in table if line.startswith("learned barbell")][0].endswith(expected)
+    # A backend that does not know the digest prints nothing for it.
+    plain = runner.evaluate_set(bench, OracleBackend(bench, "", fp=False), log=lambda s: None)
+    assert "sha256" not in runner.format_table("paper", bench, plain, "oracle")
