@@ -341,8 +341,9 @@ def model_digest(model: ObjectModel) -> str:
     repeats bit for bit on one machine, so two models learned there from one
     mesh with one seed and options have one digest; where figures of two
     runs differ, equal digests say the models were not why. (The model
-    store's checksum covers its file, whose archive also records when it was
-    written.)
+    store's ``model_sha256`` is the checksum of the arrays' ``.npz`` file:
+    the arrays alone, in that format; this digest also covers the metadata
+    and needs no archive written.)
     """
     arrays, meta = model_to_arrays(model)
     digest = hashlib.sha256()
