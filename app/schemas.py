@@ -199,6 +199,13 @@ class ObjectOut(BaseModel):
         default=None, description="Symmetry group of the learned model (declared in the spec "
         "or detected on the mesh); null until the object is ready.",
     )
+    model_sha256: str | None = Field(
+        default=None, description="SHA-256 (hex) of the learned model's arrays, as stored; "
+        "null until the object is ready. Learning repeats bit for bit on one machine: the "
+        "same upload (mesh or images, spec and learning options) learns the same model, "
+        "so a station can log which model gave a pose and tell a relearned part from "
+        "another.",
+    )
 
 
 class JobOut(BaseModel):

@@ -45,6 +45,7 @@ def object_dict(rec: ObjectRecord, symmetries: dict[str, Any] | None = None) -> 
         "job_id": rec.job_id,
         "error": rec.error,
         "symmetries": symmetries,
+        "model_sha256": rec.model_sha256 if rec.state == "ready" else None,
     }
 
 

@@ -36,12 +36,14 @@ class ObjectInfo:
     #: Symmetry group of the ready model, BOP ``models_info`` form in mm
     #: (``symmetries_discrete``, ``symmetries_continuous``); None while learning.
     symmetries: dict[str, Any] | None = field(default=None, hash=False)
+    #: SHA-256 (hex) of the ready model's arrays; None while learning.
+    model_sha256: str | None = None
 
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> ObjectInfo:
         return cls(d["object_id"], d["name"], d["state"], d["source"], float(d["diameter_mm"]),
                    int(d["training_views"]), int(d["model_views"]), d["created_at"],
-                   d["job_id"], d.get("error"), d.get("symmetries"))
+                   d["job_id"], d.get("error"), d.get("symmetries"), d.get("model_sha256"))
 
 
 @dataclass(frozen=True, slots=True)

@@ -4,15 +4,18 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import httpx
 import pytest
+import trimesh
 from openapi_spec_validator import validate
 
 from model_store import ModelStore
@@ -27,6 +30,7 @@ from tests.app.helpers import (
     upload_mesh,
     wait_job,
 )
+from viewloc_client import ObjectInfo
 
 SLEEPY = {**TEST_TASKS, "learn_mesh": TEST_TASKS["sleepy"]}
 
@@ -386,3 +390,33 @@ def test_units_scale_the_mesh(make_server: Callable[..., LiveServer], units: str
                    data={"spec": json.dumps({"units": units})})
         assert r.status_code == 202
         assert abs(r.json()["object"]["diameter_mm"] - 10 * (40**2 + 20**2 + 10**2) ** 0.5) < 1e-3
+
+
+#: Twelve training views of a small render: learning in a second or two.
+FAST_LEARNING = {"max_level": 0, "min_level": 0, "contour_level": 1, "object_px": 64}
+
+
+def test_a_ready_object_names_its_model_and_the_same_upload_learns_the_same_model(
+    make_server: Callable[..., LiveServer]
+) -> None:
+    srv = make_server()
+    with httpx.Client(base_url=srv.url, timeout=30) as c:
+        def learn(name: str, mesh: bytes) -> dict[str, Any]:
+            r = c.post("/v1/objects", files={"mesh": ("m.stl", mesh, "application/octet-stream")},
+                       data={"spec": json.dumps({"name": name, "learning": FAST_LEARNING})})
+            assert r.status_code == 202, r.text
+            assert r.json()["object"]["model_sha256"] is None  # learning: no model yet
+            job = wait_job(c, r.json()["job"]["job_id"], timeout=120)
+            assert job["state"] == "succeeded", job
+            obj: dict[str, Any] = c.get(f"/v1/objects/{r.json()['object']['object_id']}").json()
+            return obj
+
+        first, again = learn("first", box_stl()), learn("again", box_stl())
+        other = learn("other", bytes(trimesh.creation.box((30.0, 20.0, 10.0)).export(
+            file_type="stl")))
+        assert re.fullmatch("[0-9a-f]{64}", first["model_sha256"])
+        assert again["model_sha256"] == first["model_sha256"]
+        assert other["model_sha256"] != first["model_sha256"]
+        listed = {o["name"]: o["model_sha256"] for o in c.get("/v1/objects").json()["objects"]}
+        assert listed == {o["name"]: o["model_sha256"] for o in (first, again, other)}
+        assert ObjectInfo.from_json(first).model_sha256 == first["model_sha256"]
