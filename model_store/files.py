@@ -128,6 +128,15 @@ def model_payload(model: ObjectModel) -> tuple[bytes, dict[str, Any]]:
     return data, envelope
 
 
+def model_sha256(model: ObjectModel) -> str:
+    """The checksum :func:`save_model_dir` stores for ``model`` (and the API
+    reports as ``Object.model_sha256``), without writing anything: SHA-256 of
+    its arrays' ``.npz`` bytes, hex. numpy writes the archive with a fixed
+    date, so equal arrays give equal bytes: learning repeats bit for bit on
+    one machine, and one upload learned twice gives one checksum."""
+    return str(model_payload(model)[1]["arrays_sha256"])
+
+
 def model_from_payload(data: bytes, envelope: dict[str, Any], expected_sha256: str | None) -> Any:
     """Verify and parse what :func:`model_payload` wrote.
 

@@ -143,7 +143,8 @@ class CoreBackend:
         return self._learned(obj, model, time.perf_counter() - t0)
 
     def _learned(self, obj: BenchObject, model: ObjectModel, learn_s: float) -> LearnedObject:
-        from viewloc_core import model as core_model
+        from model_store.files import model_sha256
+        from viewloc_core.model import ObjectModel as CoreModel
 
         return LearnedObject(
             obj.name,
@@ -152,10 +153,9 @@ class CoreBackend:
             _int_or_none(getattr(model, "training_views", None)),
             _int_or_none(getattr(model, "model_views", None)),
             # Two runs' figures differ by the models or by the search: the
-            # digest tells which.
+            # checksum tells which (the service reports the same one).
             {"refinable": getattr(model, "contour", None) is not None,
-             "model_sha256": (core_model.model_digest(model)
-                              if isinstance(model, core_model.ObjectModel) else None)},
+             "model_sha256": model_sha256(model) if isinstance(model, CoreModel) else None},
         )
 
 
@@ -421,7 +421,8 @@ class HttpBackend:
             learn_s,
             info.get("training_views"),
             info.get("model_views"),
-            {"object_id": object_id, "reused": reused},
+            {"object_id": object_id, "reused": reused,
+             "model_sha256": info.get("model_sha256")},
         )
 
 

@@ -447,8 +447,8 @@ def _fmt(x: Any, spec: str = ".3f") -> str:
 
 def _model_digest_note(info: Record) -> str:
     """``, model sha256 <first 16 hex digits>`` when the backend knows the
-    learned model's digest (:func:`viewloc_core.model.model_digest`), else
-    nothing."""
+    learned model's checksum (:func:`model_store.files.model_sha256`, the
+    API's ``Object.model_sha256``), else nothing."""
     digest = info.get("model_sha256")
     return f", model sha256 {digest[:16]}" if digest else ""
 

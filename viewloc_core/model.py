@@ -17,7 +17,6 @@ The model is stored as plain arrays plus JSON metadata with a schema version
 
 from __future__ import annotations
 
-import hashlib
 import json
 import weakref
 from collections.abc import Callable
@@ -331,28 +330,6 @@ def _require_finite(arrays: dict[str, NDArray[Any]], meta: dict[str, Any]) -> No
     for name, value in numbers.items():
         if isinstance(value, float) and not np.isfinite(value):
             raise ModelFormatError(f"model metadata {name!r} is {value} (not finite)", "model")
-
-
-def model_digest(model: ObjectModel) -> str:
-    """SHA-256 of a model's content, hex.
-
-    Every array of :func:`model_to_arrays` (its name, dtype, shape and bytes,
-    in name order) and the metadata as JSON with sorted keys. Learning
-    repeats bit for bit on one machine, so two models learned there from one
-    mesh with one seed and options have one digest; where figures of two
-    runs differ, equal digests say the models were not why. (The model
-    store's ``model_sha256`` is the checksum of the arrays' ``.npz`` file:
-    the arrays alone, in that format; this digest also covers the metadata
-    and needs no archive written.)
-    """
-    arrays, meta = model_to_arrays(model)
-    digest = hashlib.sha256()
-    for name in sorted(arrays):
-        array = np.ascontiguousarray(arrays[name])
-        digest.update(f"{name}|{array.dtype.str}|{array.shape}|".encode())
-        digest.update(array.tobytes())
-    digest.update(json.dumps(meta, sort_keys=True).encode())
-    return digest.hexdigest()
 
 
 def model_from_arrays(arrays: dict[str, NDArray[Any]], meta: dict[str, Any]) -> ObjectModel:

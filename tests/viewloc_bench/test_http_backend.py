@@ -36,7 +36,8 @@ def test_http_backend_reuses_the_learned_object_and_records_timings(
     assert backend.object_name(obj, BARBELL.read_bytes()) == BENCH_NAME
     learned = backend.learn(obj)
     # Found by name and reused: nothing uploaded, the learning time is the job's.
-    assert learned.info == {"object_id": learned_barbell.object_id, "reused": True}
+    assert learned.info == {"object_id": learned_barbell.object_id, "reused": True,
+                            "model_sha256": learned_barbell.obj["model_sha256"]}
     assert [o["object_id"] for o in httpx.get(f"{srv.url}/v1/objects").json()["objects"]] == [
         learned_barbell.object_id]
     assert 0 < learned.learn_s < 600 and learned.training_views == 42

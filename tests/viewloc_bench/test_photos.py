@@ -114,11 +114,14 @@ def test_both_backends_learn_a_part_from_its_photos(
     backend = HttpBackend(srv.url)
     first = backend.learn_photos(obj, photos)
     assert first.info["reused"] is False
+    # The service's model is the core's, byte for byte.
+    assert first.info["model_sha256"] == core.info["model_sha256"]
     assert (first.training_views, first.model_views) == (core.training_views, core.model_views)
     objects = httpx.get(f"{srv.url}/v1/objects").json()["objects"]
     assert [(o["source"], o["name"].endswith(":photos")) for o in objects] == [("images", True)]
     again = backend.learn_photos(obj, photos)
-    assert again.info == {"object_id": first.info["object_id"], "reused": True}
+    assert again.info == {"object_id": first.info["object_id"], "reused": True,
+                          "model_sha256": first.info["model_sha256"]}
     # Other photos are another object.
     other = backend.learn_photos(obj, render_photos(obj, 12, seed=1))
     assert other.info["reused"] is False

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from viewloc_core.errors import ModelFormatError
-from viewloc_core.model import model_digest, model_from_arrays, model_to_arrays
+from viewloc_core.model import model_from_arrays, model_to_arrays
 
 
 def test_round_trip_is_identical(bracket_model, tmp_path):
@@ -91,13 +91,3 @@ def test_a_models_symmetry_group_is_built_once_and_a_changed_model_gets_its_own(
     np.testing.assert_array_equal(other.discrete, flipped.symmetries)
     assert bracket_model.symmetry_group() is group
 
-
-def test_a_models_digest_follows_its_content(bracket_model):
-    arrays, meta = model_to_arrays(bracket_model)
-    digest = model_digest(bracket_model)
-    assert len(digest) == 64
-    assert model_digest(model_from_arrays(arrays, meta)) == digest
-    nudged = dict(arrays, tv_edge_theta=arrays["tv_edge_theta"].copy())
-    nudged["tv_edge_theta"][7] = np.nextafter(nudged["tv_edge_theta"][7], np.float32(10.0))
-    assert model_digest(model_from_arrays(nudged, meta)) != digest
-    assert model_digest(model_from_arrays(arrays, dict(meta, default_min_score=0.5))) != digest
