@@ -360,7 +360,7 @@ def evaluate_set(
         log(
             f"  {name}: learned in {learned.learn_s:.1f} s, training views "
             f"{learned.training_views}, model views {learned.model_views}"
-            + _model_digest_note(learned.info)
+            + _model_checksum_note(learned.info)
         )
         for im in imgs:
             with Image.open(im.path) as pil:
@@ -445,7 +445,7 @@ def _fmt(x: Any, spec: str = ".3f") -> str:
     return str(x)
 
 
-def _model_digest_note(info: Record) -> str:
+def _model_checksum_note(info: Record) -> str:
     """``, model sha256 <first 16 hex digits>`` when the backend knows the
     learned model's checksum (:func:`model_store.files.model_sha256`, the
     API's ``Object.model_sha256``), else nothing."""
@@ -542,7 +542,7 @@ def format_table(name: str, bench: BenchSet, result: Record | None, header: str)
     for obj_name, info in result["objects"].items():
         lines.append(
             f"learned {obj_name}: {info['learn_s']:.1f} s, training views {info['training_views']},"
-            f" model views {info['model_views']}" + _model_digest_note(info)
+            f" model views {info['model_views']}" + _model_checksum_note(info)
         )
     return "\n".join(lines)
 

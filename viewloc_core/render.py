@@ -826,12 +826,13 @@ def _ordered_scene_type() -> type:
     class OrderedScene(_pyrender().Scene):  # type: ignore[misc]  # pyrender is untyped
         """See :func:`_ordered_scene_type`."""
 
+        def __init__(self, *args: Any, **kwargs: Any) -> None:
+            # Before pyrender's __init__, which adds its nodes through add_node.
+            self._added: dict[Any, int] = {}
+            super().__init__(*args, **kwargs)
+
         def add_node(self, node: Any, parent_node: Any = None) -> None:
             super().add_node(node, parent_node)
-            # pyrender's __init__ adds its nodes through here before any
-            # attribute of this class could be set.
-            if not hasattr(self, "_added"):
-                self._added: dict[Any, int] = {}
             self._added.setdefault(node, len(self._added))
 
         def _in_added_order(self, nodes: Any) -> list[Any]:

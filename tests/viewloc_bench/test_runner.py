@@ -427,7 +427,7 @@ def test_results_broken_down_by_visible_fraction(tiny_paper_set: Path) -> None:
                                                         dict(res, by_visibility=whole), "oracle")
 
 
-def test_the_learned_models_digest_is_reported(tiny_paper_set: Path) -> None:
+def test_the_learned_models_checksum_is_reported(tiny_paper_set: Path) -> None:
     bench = sets.load_generated(tiny_paper_set)
 
     class DigestBackend(OracleBackend):
