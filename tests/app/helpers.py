@@ -17,6 +17,11 @@ from PIL import Image
 
 CAMERA = {"fx": 500.0, "fy": 500.0, "cx": 159.5, "cy": 119.5}
 
+#: Learning options for a real learning job in a second or two: twelve
+#: training views of a small render.
+FAST_LEARNING: dict[str, Any] = {"max_level": 0, "min_level": 0, "contour_level": 1,
+                                 "object_px": 64}
+
 
 def box_stl() -> bytes:
     data = trimesh.creation.box((40.0, 20.0, 10.0)).export(file_type="stl")

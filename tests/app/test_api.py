@@ -22,6 +22,7 @@ from model_store import ModelStore
 from tests.app.conftest import TEST_TASKS, LiveServer, free_port
 from tests.app.helpers import (
     CAMERA,
+    FAST_LEARNING,
     assert_problem,
     box_stl,
     jpeg,
@@ -391,9 +392,6 @@ def test_units_scale_the_mesh(make_server: Callable[..., LiveServer], units: str
         assert r.status_code == 202
         assert abs(r.json()["object"]["diameter_mm"] - 10 * (40**2 + 20**2 + 10**2) ** 0.5) < 1e-3
 
-
-#: Twelve training views of a small render: learning in a second or two.
-FAST_LEARNING = {"max_level": 0, "min_level": 0, "contour_level": 1, "object_px": 64}
 
 
 def test_a_ready_object_names_its_model_and_the_same_upload_learns_the_same_model(

@@ -15,14 +15,13 @@ import trimesh
 
 from model_store import ModelStore
 from tests.app.conftest import TEST_TASKS, LiveServer
-from tests.app.helpers import assert_problem, box_stl, wait_job
+from tests.app.helpers import FAST_LEARNING, assert_problem, box_stl, wait_job
 from tests.app.learned import LearnedStore, learned_barbell
 from viewloc_client import ViewlocClient
 
 __all__ = ["learned_barbell"]
 
 SLEEPY = {**TEST_TASKS, "learn_mesh": TEST_TASKS["sleepy"]}
-FAST = {"max_level": 0, "min_level": 0, "contour_level": 1, "object_px": 64}
 FLIP_X = [1, 0, 0, 0, 0, -1, 0, 0, 0, 0, -1, 0, 0, 0, 0, 1]
 TURN_Z_90 = [0, -1, 0, 0, 1, 0, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]
 MIRROR_X = [-1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]
@@ -79,20 +78,20 @@ def test_declared_symmetries_replace_the_detected_ones(
         # would find) are left out, as a mark tells them apart.
         turn = [-1, 0, 0, 2, 0, -1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]
         learned = _ready(c, {
-            "half": _upload(c, {"name": "half", "units": "cm", "learning": FAST,
+            "half": _upload(c, {"name": "half", "units": "cm", "learning": FAST_LEARNING,
                                 "symmetries": {"symmetries_discrete": [turn]}},
                             _box_cm_off_centre()),
             # A 90° turn is completed into its group.
-            "quarter": _upload(c, {"name": "quarter", "learning": FAST,
+            "quarter": _upload(c, {"name": "quarter", "learning": FAST_LEARNING,
                                    "symmetries": {"symmetries_discrete": [TURN_Z_90]}}),
             # A continuous axis (which no detector would accept on a box) is
             # stored with its offset in mm.
-            "axis": _upload(c, {"name": "axis", "units": "cm", "learning": FAST,
+            "axis": _upload(c, {"name": "axis", "units": "cm", "learning": FAST_LEARNING,
                                 "symmetries": {"symmetries_discrete": [FLIP_X],
                                                "symmetries_continuous": [
                                                    {"axis": [0, 0, 3], "offset": [0, 0, 0.5]}]}}),
             # Declared as asymmetric: nothing but the identity.
-            "none": _upload(c, {"name": "none", "learning": FAST, "symmetries": {}}),
+            "none": _upload(c, {"name": "none", "learning": FAST_LEARNING, "symmetries": {}}),
         })
         half, quarter, axis, none = (learned[k] for k in ("half", "quarter", "axis", "none"))
         (T,) = _group(half["symmetries"])
