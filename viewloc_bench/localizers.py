@@ -25,6 +25,7 @@ from numpy.typing import NDArray
 from PIL import Image
 
 from viewloc_bench.sets import BenchObject
+from viewloc_client.image_upload import upload_file
 from viewloc_core.camera import Camera
 from viewloc_core.detection import Detection, Similarity2D
 from viewloc_core.pose import Pose
@@ -225,7 +226,7 @@ def detection_from_json(d: dict[str, Any]) -> Detection:
 
 
 def encode_png(image: NDArray[np.uint8]) -> bytes:
-    """PNG bytes of an RGB image (fast compression: it is on the latency path)."""
+    """PNG bytes of an RGB image (fast compression; the training photos' upload)."""
     buf = io.BytesIO()
     Image.fromarray(image).save(buf, format="PNG", compress_level=1)
     return buf.getvalue()
@@ -235,7 +236,10 @@ class HttpLocalizer:
     """One learned object's localizer through ``POST /v1/objects/{id}/localize``.
 
     The bench's latency (measured around the call) is the full round trip:
-    PNG encoding, upload, server work, answer and parsing. Each call also
+    encoding, upload, server work, answer and parsing. The image goes as
+    the client library sends an array, an uncompressed BMP
+    (:func:`viewloc_client.image_upload.upload_file`): what a station
+    sending its camera's frames would do for speed. Each call also
     leaves its breakdown in :attr:`last_timing_ms`: ``client_encode`` and
     ``client_request`` (ms, measured here) and the server's own ``timing_ms``
     answer with its keys prefixed ``server_`` (``server_total``, ...).
@@ -260,11 +264,11 @@ class HttpLocalizer:
         if camera.dist:
             cam["dist"] = list(camera.dist)
         t0 = time.perf_counter()
-        png = encode_png(image)
+        upload = upload_file(image, "image")
         t1 = time.perf_counter()
         resp = self.client.post(
             f"/v1/objects/{self.object_id}/localize",
-            files={"image": ("image.png", png, "image/png")},
+            files={"image": upload},
             data={"camera": json.dumps(cam), "options": options_json},
         )
         t2 = time.perf_counter()

@@ -66,6 +66,14 @@ def test_learn_and_localize_barbell_through_http(
         overlay = cv2.imdecode(np.frombuffer(loc.overlay_png, np.uint8), cv2.IMREAD_COLOR)
         assert overlay.shape == (288, 384, 3)
         assert np.count_nonzero(np.any(overlay != scene[:, :, ::-1], axis=2)) > 200
+        # The frame as pixels (sent as BMP) is the same image to the service,
+        # colour order included; a 16-bit grey frame (sent as TIFF) finds the part too.
+        as_array = client.localize(object_id, scene, cam)
+        assert as_array.detections[0]["pose"] == det["pose"]
+        assert as_array.detections[0]["score"] == det["score"]
+        grey16 = cv2.cvtColor(scene, cv2.COLOR_RGB2GRAY).astype(np.uint16) * 257
+        det16 = client.localize(object_id, grey16, cam).detections[0]
+        assert np.linalg.norm(np.array(det16["pose"]["t_mm"]) - truth.t_m2c) < 0.05 * 700
         many = client.localize(None, buf.tobytes(), cam)
         assert many.object_ids == [object_id]
         assert many.detections[0]["object_id"] == object_id
