@@ -73,13 +73,13 @@ def create_app(
         warmer = ModelWarmer(store, localize_prepare,
                              settings.model_cache_size if settings.prepare_models else 0)
         warmer.start()
-        app.state.store, app.state.runner = store, runner
+        app.state.store, app.state.runner, app.state.warmer = store, runner, warmer
         log.info("viewloc serving store %s with %s job runner", store.root,
                  settings.job_backend)
         try:
             yield
         finally:
-            app.state.runner = None
+            app.state.runner = app.state.warmer = None
             warmer.stop()
             runner.stop()
 
@@ -93,6 +93,7 @@ def create_app(
     application.state.settings = settings
     application.state.store = None
     application.state.runner = None
+    application.state.warmer = None
     metrics = Metrics(lambda: application.state.store.job_counts()
                       if application.state.store is not None else {})
     application.state.metrics = metrics

@@ -8,11 +8,18 @@ bench parts) instead of the tens of milliseconds the rest take. The warmer
 polls the store for ready models it has not seen (at start-up: those already
 stored; later: those a job has just learned or relearned, by whichever
 runner), loads them into the store's cache and prepares them.
+
+Its first look comes at start-up, and until it has finished the service
+is not ready (``/readyz``): a station that starts sending as soon as the
+service says ready would otherwise wait for the preparation of the model
+it asks for (first localization after a restart, hard bench set's
+bracket: 815 ms against about 70 ms).
 """
 
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from collections.abc import Callable
 from typing import Any
@@ -47,12 +54,23 @@ class ModelWarmer:
         #: found unloadable), so that each stored model is handled once.
         self._seen: set[tuple[str, str]] = set()
         self._loop: Periodic | None = None
+        self._first_pass = threading.Event()
+        if self.limit == 0:
+            self._first_pass.set()
+
+    @property
+    def warm(self) -> bool:
+        """Whether the models ready when polling began have been prepared
+        (or found unloadable); always True when warming is off."""
+        return self._first_pass.is_set()
 
     def start(self) -> None:
-        """Start polling in a daemon thread (a no-op when ``limit`` is 0)."""
+        """Start polling in a daemon thread, the first look at once (a no-op
+        when ``limit`` is 0)."""
         if self._loop is not None or self.limit == 0:
             return
-        self._loop = Periodic("viewloc-model-warmer", self.interval_s, self.step)
+        self._loop = Periodic("viewloc-model-warmer", self.interval_s, self.step,
+                              immediately=True)
         self._loop.start()
 
     def stop(self) -> None:
@@ -94,4 +112,7 @@ class ModelWarmer:
             prepared.append(record.object_id)
             log.info("model of %s prepared in %.0f ms", record.object_id,
                      (time.perf_counter() - t) * 1000)
+        # Only a pass that went through every model counts: one cut short by
+        # an error is taken up again by the next.
+        self._first_pass.set()
         return prepared

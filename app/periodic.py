@@ -12,13 +12,14 @@ log = logging.getLogger("viewloc.periodic")
 class Periodic:
     """A daemon thread calling ``step`` every ``interval_s`` until stopped.
 
-    The first call comes one interval after :meth:`start`. An exception in
-    ``step`` is logged and the loop goes on: a busy database or a Redis
-    hiccup must not end it.
+    The first call comes one interval after :meth:`start`, or at once with
+    ``immediately``. An exception in ``step`` is logged and the loop goes
+    on: a busy database or a Redis hiccup must not end it.
     """
 
-    def __init__(self, name: str, interval_s: float, step: Callable[[], object]) -> None:
-        self.interval_s, self.step = interval_s, step
+    def __init__(self, name: str, interval_s: float, step: Callable[[], object],
+                 immediately: bool = False) -> None:
+        self.interval_s, self.step, self.immediately = interval_s, step, immediately
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
 
@@ -33,8 +34,13 @@ class Periodic:
         return self._thread.is_alive()
 
     def _run(self) -> None:
+        if self.immediately:
+            self._call()
         while not self._stop.wait(self.interval_s):
-            try:
-                self.step()
-            except Exception:
-                log.exception("periodic %s failed", self._thread.name)
+            self._call()
+
+    def _call(self) -> None:
+        try:
+            self.step()
+        except Exception:
+            log.exception("periodic %s failed", self._thread.name)

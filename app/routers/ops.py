@@ -28,20 +28,25 @@ def healthz() -> dict[str, Any]:
     "/readyz",
     response_model=Health,
     responses=errors(503),
-    summary="Store readable and job runner up",
+    summary="Store readable, job runner up, stored models prepared",
 )
 def readyz(request: Request) -> Any:
-    """200 when the store answers and the job runner runs, else 503."""
+    """200 when the store answers, the job runner runs and the models stored
+    at start-up are loaded and prepared (:mod:`app.model_warmer`), else 503."""
     store = getattr(request.app.state, "store", None)
     runner = getattr(request.app.state, "runner", None)
+    warmer = getattr(request.app.state, "warmer", None)
     checks = {
         "store": bool(store is not None and store.readable()),
         "job_runner": bool(runner is not None and runner.is_running()),
+        "models_prepared": bool(warmer is not None and warmer.warm),
     }
     if all(checks.values()):
         return {"status": "ok", "checks": checks}
-    down = ", ".join(name for name, ok in checks.items() if not ok)
-    return problem_response(503, f"not ready: {down} not available", "unavailable")
+    down = [f"{name} not available" for name in ("store", "job_runner") if not checks[name]]
+    if not checks["models_prepared"]:
+        down.append("the stored models are still being prepared")
+    return problem_response(503, f"not ready: {', '.join(down)}", "unavailable")
 
 
 @router.get(

@@ -59,6 +59,12 @@ def start_server(settings: Settings, tasks: dict[str, str] | None = None) -> Liv
         if time.monotonic() > deadline or not thread.is_alive():
             raise RuntimeError("uvicorn did not start")
         time.sleep(0.02)
+    # Ready as a client would wait for it: the stored models prepared (an
+    # empty store's first look takes milliseconds), so /readyz answers 200.
+    while not app.state.warmer.warm:
+        if time.monotonic() > deadline or not thread.is_alive():
+            raise RuntimeError("the stored models were not prepared")
+        time.sleep(0.02)
     return LiveServer(f"http://127.0.0.1:{port}", app, server, thread)
 
 

@@ -312,7 +312,8 @@ def test_a_bug_answers_500_problem_json_and_the_connection_stays_usable(
 def test_operations_metrics_request_id_and_openapi(make_server: Callable[..., LiveServer]) -> None:
     srv = make_server()
     with httpx.Client(base_url=srv.url, timeout=30) as c:
-        assert c.get("/readyz").json()["checks"] == {"store": True, "job_runner": True}
+        assert c.get("/readyz").json()["checks"] == {"store": True, "job_runner": True,
+                                                      "models_prepared": True}
         r = c.get("/v1/objects", headers={"X-Request-ID": "abc-123"})
         assert r.headers["x-request-id"] == "abc-123"
         assert len(c.get("/healthz").headers["x-request-id"]) == 32

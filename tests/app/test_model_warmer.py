@@ -10,6 +10,7 @@ from typing import Any
 
 import httpx
 import numpy as np
+import pytest
 
 from app.model_warmer import ModelWarmer
 from model_store import ModelStore
@@ -116,4 +117,46 @@ def test_the_service_prepares_stored_models_at_start_up(
     while store.load_model(learned_barbell.object_id) not in view_search._TEMPLATES:
         assert time.monotonic() < deadline, "the stored model was never prepared"
         time.sleep(0.05)
+    assert httpx.get(f"{srv.url}/healthz").status_code == 200
+
+
+def test_warm_once_a_whole_pass_has_gone_through_the_stored_models(
+    learned_barbell: LearnedStore, tmp_path: Path
+) -> None:
+    store = ModelStore(learned_barbell.copy_to(tmp_path / "var"))
+    calls: list[Any] = []
+
+    def prepare_failing_once(model: Any) -> None:
+        calls.append(model)
+        if len(calls) == 1:
+            raise RuntimeError("a bug in preparing")
+
+    warmer = ModelWarmer(store, prepare_failing_once, limit=4)
+    assert not warmer.warm
+    # A pass cut short by an error does not count ...
+    with pytest.raises(RuntimeError, match="a bug in preparing"):
+        warmer.step()
+    assert not warmer.warm
+    # ... the next one, which skips the model that failed, does.
+    assert warmer.step() == [] and warmer.warm
+    assert ModelWarmer(store, prepare_failing_once, limit=0).warm
+
+
+def test_the_service_is_not_ready_until_the_stored_models_are_prepared(
+    learned_barbell: LearnedStore, make_server: Callable[..., LiveServer], tmp_path: Path
+) -> None:
+    learned_barbell.copy_to(tmp_path / "var")
+    srv = make_server()
+    store = srv.app.state.store
+    # The first look is made at start-up, not an interval later.
+    assert srv.app.state.warmer.warm
+    assert store.load_model(learned_barbell.object_id) in view_search._TEMPLATES
+    r = httpx.get(f"{srv.url}/readyz")
+    assert r.status_code == 200 and r.json()["checks"]["models_prepared"] is True
+    # A warmer that has not been through the store yet (as one still
+    # preparing a large store's models) keeps the service unready.
+    srv.app.state.warmer = ModelWarmer(store, localize_module.prepare, limit=4)
+    r = httpx.get(f"{srv.url}/readyz")
+    assert r.status_code == 503
+    assert r.json()["detail"] == "not ready: the stored models are still being prepared"
     assert httpx.get(f"{srv.url}/healthz").status_code == 200
