@@ -158,6 +158,15 @@ class LocalizeOptionsIn(_In):
         "aside), degrees. A fit its contour does not pin down (edges along one side of its "
         "outline only) is not reported. Default 30.",
     )
+    timeout_ms: FiniteFloat | None = Field(
+        default=None, gt=0, le=3_600_000,
+        description="Time budget of the localization, ms, counted once the image is decoded. "
+        "Once it is spent nothing more is started that only looks further for the part "
+        "(the finer image level, spare and further locations; with several objects, the "
+        "objects not yet searched, listed in 'skipped'); fits already begun finish, so the "
+        "answer can come a few tens of ms after it. The answer's 'timed_out' says whether "
+        "anything was left out. Default: no budget.",
+    )
 
 
 class MultiLocalizeOptionsIn(LocalizeOptionsIn):
@@ -293,6 +302,9 @@ class LocalizationOut(BaseModel):
     image: ImageSize
     detections: list[DetectionOut]
     timing_ms: dict[str, float] = Field(description="Has 'decode' and 'total', ms.")
+    timed_out: bool = Field(default=False, description="The time budget (options.timeout_ms) "
+                            "was spent before the search was done: the detections are what "
+                            "was found before.")
     overlay_png_base64: str | None = Field(default=None,
         description="With ?overlay=true: the scene as PNG (base64) with each detection's "
         "projected model contour and axes (x red, y green, z blue) drawn.",
@@ -303,10 +315,11 @@ class SkippedObjectOut(BaseModel):
     """A ready object that ``POST /v1/localize`` listed but could not search."""
 
     object_id: str
-    reason: Literal["corrupt", "not-ready", "deleted"] = Field(
+    reason: Literal["corrupt", "not-ready", "deleted", "timed-out"] = Field(
         description="'corrupt': its stored model turned out unusable when loaded (the object "
         "is now failed); 'not-ready': it was no longer ready when its model was loaded; "
-        "'deleted': it was deleted after it was listed.",
+        "'deleted': it was deleted after it was listed; 'timed-out': the time budget "
+        "(options.timeout_ms) was spent before its search began.",
     )
     detail: str = Field(description="What the store said, as a 409 or 404 would.")
 
@@ -317,13 +330,17 @@ class MultiLocalizationOut(BaseModel):
     object_ids: list[str] = Field(description="The objects that were searched.")
     skipped: list[SkippedObjectOut] = Field(
         default_factory=list,
-        description="Without options.object_ids: the ready objects that could not be "
-        "searched, and why (the others were searched). Always empty when object_ids is "
-        "given: an object named there that cannot be searched answers 404 or 409.",
+        description="The objects that could not be searched, and why (the others were "
+        "searched). Without options.object_ids: ready objects whose model could not be used, "
+        "or left out by the time budget; with it, only those left out by the time budget "
+        "(an object named there that cannot be searched answers 404 or 409).",
     )
     image: ImageSize
     detections: list[DetectionOut]
     timing_ms: dict[str, float]
+    timed_out: bool = Field(default=False, description="The time budget "
+                            "(options.timeout_ms) was spent before every object's search "
+                            "was done.")
     overlay_png_base64: str | None = None
 
 

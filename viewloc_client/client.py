@@ -82,9 +82,11 @@ class Localization:
     detections: list[dict[str, Any]]
     timing_ms: dict[str, float]
     overlay_png: bytes | None = None
-    #: Objects of an all-object localization that could not be searched, as
-    #: the API's JSON dicts (``object_id``, ``reason``, ``detail``).
+    #: Objects of a several-object localization that could not be searched,
+    #: as the API's JSON dicts (``object_id``, ``reason``, ``detail``).
     skipped: list[dict[str, Any]] = field(default_factory=list)
+    #: The time budget (``timeout_ms``) was spent before the search was done.
+    timed_out: bool = False
 
 
 def _camera_json(camera: dict[str, Any] | Any) -> str:
@@ -242,7 +244,8 @@ class ViewlocClient:
                  object_ids: list[str] | None = None, overlay: bool = False,
                  roi: tuple[int, int, int, int] | None = None,
                  depth_mm: tuple[float, float] | None = None,
-                 max_rotation_std_deg: float | None = None) -> Localization:
+                 max_rotation_std_deg: float | None = None,
+                 timeout_ms: float | None = None) -> Localization:
         """Localize one object (``object_id``) or several (``object_id=None``).
 
         ``image`` is an image file's bytes or path, or the pixels: an
@@ -254,7 +257,9 @@ class ViewlocClient:
         ``(x, y, width, height)`` (pixels) is where the part's centre lies;
         ``depth_mm`` ``(min, max)`` the depths of its origin;
         ``max_rotation_std_deg`` the most rotation uncertainty a detection
-        may have (degrees; the service's default 30 when None).
+        may have (degrees; the service's default 30 when None);
+        ``timeout_ms`` the search's time budget (ms; none when None: see
+        :attr:`Localization.timed_out`).
         """
         import base64
 
@@ -267,6 +272,8 @@ class ViewlocClient:
             options["depth_mm"] = {"min": depth_mm[0], "max": depth_mm[1]}
         if max_rotation_std_deg is not None:
             options["max_rotation_std_deg"] = max_rotation_std_deg
+        if timeout_ms is not None:
+            options["timeout_ms"] = timeout_ms
         if object_id is None:
             path = "/v1/localize"
             if object_ids is not None:
@@ -284,6 +291,7 @@ class ViewlocClient:
             detections=list(body["detections"]), timing_ms=dict(body["timing_ms"]),
             overlay_png=base64.b64decode(png) if png else None,
             skipped=list(body.get("skipped") or []),
+            timed_out=bool(body.get("timed_out", False)),
         )
 
     # -- operations --------------------------------------------------------

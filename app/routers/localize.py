@@ -94,19 +94,23 @@ def _core_options(opts: LocalizeOptionsIn) -> LocalizeOptions:
     depth = None if opts.depth_mm is None else DepthRange(opts.depth_mm.min, opts.depth_mm.max)
     return LocalizeOptions(max_detections=opts.max_detections, min_score=opts.min_score,
                            refine=opts.refine, roi=roi, depth_mm=depth,
-                           max_rotation_std_deg=opts.max_rotation_std_deg)
+                           max_rotation_std_deg=opts.max_rotation_std_deg,
+                           timeout_ms=opts.timeout_ms)
 
 
 def _run(model: Any, img: np.ndarray, camera: Camera, opts: LocalizeOptionsIn,
-         metrics: Any, scene: Scene | None = None) -> tuple[list[Detection], dict[str, float]]:
-    """One part's detections and the core's timings (ms); in ``scene`` when
-    given (shared by the parts of one request), else in ``img``."""
+         metrics: Any, scene: Scene | None = None, deadline: float | None = None,
+         ) -> tuple[list[Detection], dict[str, float], bool]:
+    """One part's detections, the core's timings (ms) and whether the time
+    budget cut its search short; in ``scene`` when given (shared by the
+    parts of one request, whose ``deadline`` they share), else in ``img``."""
     t = time.perf_counter()
     core_options = _core_options(opts)
     result = (localize(model, img, camera, core_options) if scene is None
-              else localize_in_scene(model, scene, core_options))
+              else localize_in_scene(model, scene, core_options, deadline=deadline))
     metrics.localize_seconds.observe(time.perf_counter() - t)
-    return list(result.detections), {str(k): float(v) for k, v in result.timing_ms.items()}
+    return (list(result.detections), {str(k): float(v) for k, v in result.timing_ms.items()},
+            result.timed_out)
 
 
 def _overlay(img: np.ndarray, items: list[tuple[Any, list[Detection]]], camera: Camera) -> str:
@@ -164,7 +168,7 @@ def localize_object(
         Form(description='JSON: {"max_detections": 1, "min_score": null, "refine": true, '
                          '"roi": {"x", "y", "width", "height"} (optional), '
                          '"depth_mm": {"min", "max"} (optional), '
-                         '"max_rotation_std_deg": 30 (optional)}'),
+                         '"max_rotation_std_deg": 30 (optional), "timeout_ms": null (optional)}'),
     ] = None,
     overlay: Overlay = False,
 ) -> dict[str, Any]:
@@ -178,15 +182,15 @@ def localize_object(
     # 409 unless ready: the record is read again, as the object may have
     # been deleted or relearned since the check above.
     model = store.load_model(object_id)
-    dets, core_timing = _run(model, img, cam, opts, metrics)
+    dets, core_timing, timed_out = _run(model, img, cam, opts, metrics)
     # Every detection names its object, as in the multi-object answer (not null).
     dets = [dataclasses.replace(d, object_id=object_id) for d in dets]
     core_total = core_timing.pop("total", None)
     timing.update(core_timing)
     if core_total is not None:
         timing["localize"] = core_total
-    return _answer({"object_id": object_id}, img, cam, dets, [(model, dets)], overlay,
-                   timing, t0)
+    return _answer({"object_id": object_id, "timed_out": timed_out}, img, cam, dets,
+                   [(model, dets)], overlay, timing, t0)
 
 
 def _objects_to_search(store: ModelStore, object_ids: list[str] | None) -> dict[str, str | None]:
@@ -274,7 +278,7 @@ def localize_many(
         str | None,
         Form(description='JSON: {"object_ids": [...], "max_detections": 1, "min_score": null, '
                          '"roi": {...}, "depth_mm": {...}, "max_rotation_std_deg": 30, '
-                         '"refine": true}'),
+                         '"timeout_ms": null, "refine": true}'),
     ] = None,
     overlay: Overlay = False,
 ) -> dict[str, Any]:
@@ -289,19 +293,33 @@ def localize_many(
     img = _decode(image, settings, timing)
     cam = _camera(camera, img.shape[1], img.shape[0])
     models, skipped = _load_models(store, fields)
-    ids = [oid for oid, _ in models]
+    ids: list[str] = []  # the objects searched
     all_dets: list[Detection] = []
     drawn: list[tuple[Any, list[Detection]]] = []
     # The image's features and edge pyramid are the same for every part:
     # found once (a colour 640x480 image: about 25 ms a part saved).
     t = time.perf_counter()
     core_options = _core_options(opts)
+    # One budget for the request: the objects share it, in their order.
+    deadline = core_options.deadline(t)
+    timed_out = False
     scene = prepare_scene(img, cam, edges=any(refines(m, core_options) for _, m in models))
     localize_ms = (time.perf_counter() - t) * 1000
     timing["features"] = scene.features_ms
     try:
-        for oid, model in models:
-            dets, core_timing = _run(model, img, cam, opts, metrics, scene)
+        for k, (oid, model) in enumerate(models):
+            # The first object is always searched, as a single object's
+            # search always makes its first fits.
+            if k > 0 and time.perf_counter() >= deadline:
+                skipped.append({"object_id": oid, "reason": "timed-out",
+                                "detail": "the time budget (options.timeout_ms) was spent "
+                                          "before its search began"})
+                timed_out = True
+                continue
+            dets, core_timing, cut_short = _run(model, img, cam, opts, metrics, scene,
+                                                deadline)
+            timed_out |= cut_short
+            ids.append(oid)
             localize_ms += core_timing.get("total", 0.0)
             dets = [dataclasses.replace(d, object_id=oid) for d in dets]
             drawn.append((model, dets))
@@ -310,5 +328,5 @@ def localize_many(
         scene.release()
     all_dets.sort(key=lambda d: -d.score)
     timing["localize"] = localize_ms
-    return _answer({"object_ids": ids, "skipped": skipped}, img, cam, all_dets, drawn, overlay,
-                   timing, t0)
+    return _answer({"object_ids": ids, "skipped": skipped, "timed_out": timed_out}, img, cam,
+                   all_dets, drawn, overlay, timing, t0)

@@ -1,6 +1,7 @@
 """Localization: what a detection reports about where the object is."""
 
 import math
+import time
 from dataclasses import replace
 
 import numpy as np
@@ -23,6 +24,7 @@ from viewloc_core import localize as localize_module
 from viewloc_core.align import Match2D
 from viewloc_core.camera import Camera
 from viewloc_core.detection import Detection, Similarity2D
+from viewloc_core.errors import InvalidInputError
 from viewloc_core.features import extract_features
 from viewloc_core.learn import LearningConfig, learn_from_mesh
 from viewloc_core.localize import (
@@ -1193,15 +1195,15 @@ def test_a_search_that_settles_nothing_on_its_level_is_repeated_on_a_finer_one(
     assert scene.factor < 1.0
     searched: list[float] = []
 
-    def run(answers, options=None, in_colour=False):
-        def on_level(model, on_scene, opts):
+    def run(answers, options=None, in_colour=False, deadline=None):
+        def on_level(model, on_scene, opts, budget):
             searched.append(on_scene.factor)
             best = answers[len(searched) - 1]
             return _LevelAnswer([] if best is None else [best.detection], best, in_colour, {})
         searched.clear()
         monkeypatch.setattr(localize_module, "_localize_on_level", on_level)
         monkeypatch.setattr(localize_module, "refines", lambda model, opts: opts.refine)
-        return localize_in_scene(None, scene, options or LocalizeOptions())
+        return localize_in_scene(None, scene, options or LocalizeOptions(), deadline=deadline)
 
     settled, settled_better = _refined_fit(0, 0.9, True), _refined_fit(1, 0.95, True)
     assert _settled(settled) and _settled(settled_better)
@@ -1235,6 +1237,16 @@ def test_a_search_that_settles_nothing_on_its_level_is_repeated_on_a_finer_one(
         assert not _resolved(short)
         run([short, settled])
         assert searched == [scene.factor, 1.0]
+    # Not once the time budget is spent: the level's answer stands, and the
+    # result says the search was cut short (it was not, when it had time).
+    result = run([doubtful, settled], deadline=time.perf_counter() - 1.0)
+    assert searched == [scene.factor] and result.detections == [doubtful.detection]
+    assert result.timed_out and "finer_search" not in result.timing_ms
+    assert not run([doubtful, settled], LocalizeOptions(timeout_ms=1e7)).timed_out
+    assert searched == [scene.factor, 1.0]
+    # A budget spent with nothing left to start cuts nothing short.
+    result = run([settled, settled_better], deadline=time.perf_counter() - 1.0)
+    assert not result.timed_out and result.detections == [settled.detection]
     # In colour, fits rank by the colour and not by settling: searched once.
     assert run([doubtful, settled], in_colour=True).detections == [doubtful.detection]
     assert searched == [scene.factor]
@@ -1247,6 +1259,31 @@ def test_a_search_that_settles_nothing_on_its_level_is_repeated_on_a_finer_one(
     assert scene.factor == 1.0 and scene.at_finer_level() is scene
     run([doubtful, settled])
     assert searched == [1.0]
+
+
+@pytest.mark.parametrize("timeout_ms", [0.0, -5.0, math.nan, math.inf])
+def test_a_time_budget_must_be_a_positive_number_of_ms(timeout_ms) -> None:
+    with pytest.raises(InvalidInputError, match="positive number of milliseconds") as err:
+        LocalizeOptions(timeout_ms=timeout_ms)
+    assert err.value.field == "options.timeout_ms"
+
+
+def test_a_spent_time_budget_starts_no_further_search(bracket_model) -> None:
+    # A part-free 640x480 image settles nothing: without a budget the spare
+    # locations and the finer level are searched too; with a spent one
+    # neither is, and the result says so. A budget that lasts changes nothing.
+    camera = Camera(600.0, 600.0, 319.5, 239.5, 640, 480)
+    image = np.random.default_rng(3).integers(0, 255, (480, 640), dtype=np.uint8)
+    free = localize(bracket_model, image, camera, LocalizeOptions(min_score=0.0))
+    assert "finer_search" in free.timing_ms and not free.timed_out
+    lasting = localize(bracket_model, image, camera,
+                       LocalizeOptions(min_score=0.0, timeout_ms=1e7))
+    assert not lasting.timed_out
+    assert [d.pose.t_m2c.tolist() for d in lasting.detections] == \
+        [d.pose.t_m2c.tolist() for d in free.detections]
+    spent = localize(bracket_model, image, camera,
+                     LocalizeOptions(min_score=0.0, timeout_ms=1e-3))
+    assert spent.timed_out and "finer_search" not in spent.timing_ms
 
 
 def test_the_finer_level_finds_its_features_once_and_shares_the_pyramid(monkeypatch) -> None:
