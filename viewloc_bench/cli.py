@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 from datetime import UTC, datetime
@@ -66,6 +67,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     )
     p.add_argument("--out", type=Path, default=Path("bench_out"), help="output folder")
     p.add_argument("--no-refine", action="store_true", help="localize without pose refinement")
+    p.add_argument("--timeout-ms", type=float, default=None,
+                   help="localize with this time budget per image (options.timeout_ms, ms; "
+                   "default none): what a bound on the slow images costs in recognition")
     p.add_argument(
         "--heldout",
         action="store_true",
@@ -167,8 +171,9 @@ def make_backend(args: argparse.Namespace) -> PhotoLearningBackend:
     refine = not args.no_refine
     learn_seed = _learn_seed(args)
     if args.url:
-        return HttpBackend(args.url, refine=refine, api_key=args.api_key, seed=learn_seed)
-    return CoreBackend(refine=refine, seed=learn_seed)
+        return HttpBackend(args.url, refine=refine, api_key=args.api_key, seed=learn_seed,
+                           timeout_ms=args.timeout_ms)
+    return CoreBackend(refine=refine, seed=learn_seed, timeout_ms=args.timeout_ms)
 
 
 def _learn_dense(backend: Backend, lmo_set: sets.BenchSet) -> dict[str, Any]:
@@ -191,6 +196,11 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     if args.photos < 1:
         print(f"--photos must be at least 1, got {args.photos}", file=sys.stderr)
+        return 2
+    if args.timeout_ms is not None and not (math.isfinite(args.timeout_ms)
+                                            and args.timeout_ms > 0):
+        print(f"--timeout-ms must be a positive number of ms, got {args.timeout_ms}",
+              file=sys.stderr)
         return 2
     args.out.mkdir(parents=True, exist_ok=True)
     benches = load_sets(args, names)
@@ -228,6 +238,8 @@ def main(argv: list[str] | None = None) -> int:
         if name.endswith("-photos"):
             set_backend = PhotoBackend(backend, args.photos, _learn_seed(args))
         header = f"{set_backend.label}, refine {'on' if refine else 'off'}"
+        if args.timeout_ms is not None:
+            header += f", time budget {args.timeout_ms:g} ms"
         entry: dict[str, Any] = {
             "folder": str(bench.folder),
             "generation_s": bench.generation_s,

@@ -57,6 +57,13 @@ def test_http_backend_reuses_the_learned_object_and_records_timings(
     # The round trip contains the server's own time.
     assert timing["client_request"] >= timing["server_total"] > 0
 
+    # The bench's time budget goes with every localization, not into learning.
+    budgeted = HttpBackend(srv.url, learning={k: v for k, v in LEARNING.items() if k != "seed"},
+                           timeout_ms=40.0).learn(obj).localize
+    assert isinstance(budgeted, HttpLocalizer) and budgeted.object_id == learned_barbell.object_id
+    assert json.loads(budgeted.options_json)["timeout_ms"] == 40.0
+    assert "timeout_ms" not in json.loads(localizer.options_json)
+
     # Other options (here another seed) are another object: not reused.
     other = HttpBackend(srv.url, seed=1, learning={"max_level": 1, "min_level": 1})
     assert other.object_name(obj, BARBELL.read_bytes()) != BENCH_NAME
@@ -88,11 +95,11 @@ def test_core_backend_passes_max_detections_to_the_core(monkeypatch: pytest.Monk
     import viewloc_core.learn
     import viewloc_core.localize
 
-    wanted: list[tuple[int, bool]] = []
+    wanted: list[tuple[int, bool, float | None]] = []
 
     def fake_localize(model: object, image: object, camera: object,
                       options: viewloc_core.localize.LocalizeOptions) -> SimpleNamespace:
-        wanted.append((options.max_detections, options.refine))
+        wanted.append((options.max_detections, options.refine, options.timeout_ms))
         return SimpleNamespace(detections=(), timing_ms={"total": 1.5})
 
     monkeypatch.setattr(viewloc_core.learn, "learn_from_mesh", lambda *a, **k: SimpleNamespace())
@@ -102,6 +109,25 @@ def test_core_backend_passes_max_detections_to_the_core(monkeypatch: pytest.Monk
     image = np.zeros((8, 8, 3), np.uint8)
     cam = Camera(10.0, 10.0, 4.0, 4.0, 8, 8)
     assert run(image, cam) == [] and run(image, cam, max_detections=3) == []
-    assert wanted == [(1, False), (3, False)]
+    assert wanted == [(1, False, None), (3, False, None)]
+    # The bench's time budget is each localization's.
+    budgeted = CoreBackend(timeout_ms=50.0).learn(obj).localize
+    budgeted(image, cam)
+    assert wanted[-1] == (1, True, 50.0)
     # The core's stage times are kept for the bench's breakdown.
     assert run.last_timing_ms == {"total": 1.5}  # type: ignore[attr-defined]
+
+
+def test_the_core_backend_prepares_each_model_before_its_first_image(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    import viewloc_core.learn
+    from viewloc_core import view_search
+
+    learn = viewloc_core.learn.learn_from_mesh
+    monkeypatch.setattr(viewloc_core.learn, "learn_from_mesh", lambda mesh, config, *a, **k: learn(
+        mesh, viewloc_core.learn.LearningConfig(max_level=1, min_level=1), *a, **k))
+    obj = BenchObject("barbell", BARBELL, 0.0, np.eye(4)[None], np.zeros((1, 3)))
+    learned = CoreBackend().learn(obj)
+    # Its search structures are built, as the service's warmer builds them.
+    assert learned.localize.model in view_search._TEMPLATES  # type: ignore[attr-defined]

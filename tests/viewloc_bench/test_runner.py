@@ -446,3 +446,22 @@ def test_the_learned_models_checksum_is_reported(tiny_paper_set: Path) -> None:
     # A backend that does not know the digest prints nothing for it.
     plain = runner.evaluate_set(bench, OracleBackend(bench, "", fp=False), log=lambda s: None)
     assert "sha256" not in runner.format_table("paper", bench, plain, "oracle")
+
+
+@pytest.mark.parametrize("url", [None, "http://127.0.0.1:9"])
+def test_the_time_budget_reaches_the_localizer(url: str | None) -> None:
+    base = ["--url", url] if url else []
+    backend = cli.make_backend(cli.parse_args([*base, "--timeout-ms", "80"]))
+    assert backend.timeout_ms == 80.0  # type: ignore[union-attr]
+    assert cli.make_backend(cli.parse_args(base)).timeout_ms is None  # type: ignore[union-attr]
+    if isinstance(backend, CoreBackend):
+        from viewloc_bench.localizers import CoreLocalizer
+
+        assert CoreLocalizer(object(), timeout_ms=80.0).timeout_ms == 80.0  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("bad", ["0", "-3", "nan", "inf"])
+def test_a_bad_time_budget_is_refused(bad: str, tmp_path: Path,
+                                      capsys: pytest.CaptureFixture[str]) -> None:
+    assert cli.main(["--sets", "paper", "--timeout-ms", bad, "--out", str(tmp_path)]) == 2
+    assert "--timeout-ms must be a positive number of ms" in capsys.readouterr().err
