@@ -161,11 +161,12 @@ class LocalizeOptionsIn(_In):
     timeout_ms: FiniteFloat | None = Field(
         default=None, gt=0, le=3_600_000,
         description="Time budget of the localization, ms, counted once the image is decoded. "
-        "Once it is spent nothing more is started that only looks further for the part "
-        "(the finer image level, spare and further locations; with several objects, the "
-        "objects not yet searched, listed in 'skipped'); fits already begun finish, so the "
-        "answer can come a few tens of ms after it. The answer's 'timed_out' says whether "
-        "anything was left out. Default: no budget.",
+        "A search that only looks further for the part (the finer image level, spare and "
+        "further locations) is started only when it is expected to end within it; with "
+        "several objects, those not yet searched when it is spent are left out and listed in "
+        "'skipped'. A search begun finishes, so the answer can come after the budget when one "
+        "took longer than expected. The answer's 'timed_out' says whether anything was left "
+        "out. Default: no budget.",
     )
 
 

@@ -754,11 +754,12 @@ class LocalizeOptions:
         may have (see MAX_ROTATION_STD_DEG); None uses that default.
     timeout_ms : float or None
         Time budget of the localization, ms (> 0), counted from its start
-        (features included); None for none. Once it is spent, nothing more
-        is started that only looks further for the part: the finer level's
-        search, spare locations, further locations (see
-        :func:`localize_in_scene`). Fits already begun are finished, so the
-        answer can come one round of fits after the budget.
+        (features included); None for none. A search that only looks
+        further for the part (the finer level's, spare locations', further
+        locations') is started only when it is expected to end within it
+        (see :func:`localize_in_scene`); a search begun is finished, so the
+        answer can come later than the budget when one took longer than
+        expected.
     """
 
     max_detections: int = 1
@@ -2405,14 +2406,17 @@ def localize_in_scene(model: ObjectModel, scene: Scene,
     median latency (two runs beside other jobs): it is not run in colour.
 
     With a time budget (``options.timeout_ms``), none of the searches that
-    only look further for the part is started once it is spent: the finer
-    level's, the spare locations' and further locations' fits (a QA cycle
-    has a fixed time, as HALCON's ``timeout`` parameter of its shape
-    matching gives). What was found before is the answer, and the result
-    says that the search was cut short. The stages' times on a 640x480
-    image (hard bench set, medians) are about 20 ms of features, 20 ms of
-    alignment, 10 ms of view search and 30 ms of fits; the finer level's
-    search, where it runs, another 150 ms.
+    only look further for the part is started unless it is expected to end
+    within the budget: the finer level's (expected to take the level's
+    search time, features included, times the ratio of their pixels), the
+    spare locations' fits (the first fits' time per round on the two
+    cores) and further locations' (the last round's). A QA cycle has a
+    fixed time, as HALCON's ``timeout`` parameter of its shape matching
+    gives. What was found before is the answer, and the result says that
+    the search was cut short. The stages' times on a 640x480 image (hard
+    bench set, medians) are about 16 ms of features, 15 ms of alignment,
+    8 ms of view search and 22 ms of fits; the finer level's search, where
+    it runs, another 110-150 ms.
 
     Parameters
     ----------
@@ -2440,7 +2444,7 @@ def localize_in_scene(model: ObjectModel, scene: Scene,
     timing = answer.timing_ms
     if (refines(model, options) and scene.has_finer_level() and not answer.in_colour
             and (answer.best is None or not _resolved(answer.best))
-            and budget.allows()):
+            and budget.allows(_finer_search_expected_s(scene, time.perf_counter() - t0))):
         t1 = time.perf_counter()
         again = _localize_on_level(model, scene.at_finer_level(), options, budget)
         timing["finer_search"] = (time.perf_counter() - t1) * 1e3
@@ -2450,6 +2454,16 @@ def localize_in_scene(model: ObjectModel, scene: Scene,
             answer = again
     timing["total"] = (time.perf_counter() - t0) * 1e3
     return LocalizationResult(answer.detections, timing, budget.cut_short)
+
+
+def _finer_search_expected_s(scene: Scene, level_search_s: float) -> float:
+    """The time the finer level's search of ``scene`` is expected to take,
+    seconds: the level's, features included, times the ratio of the two
+    levels' pixels (the search's stages grow about with the pixels; hard
+    bench set: 108 ms median where the level's took about 50)."""
+    finer_factor = _level_factor(scene.image, FINER_SEARCH_SIDE_PX)
+    pixel_ratio = (finer_factor / scene.factor) ** 2
+    return (scene.features_ms / 1e3 + level_search_s) * pixel_ratio
 
 
 @dataclass(eq=False, slots=True)
@@ -2467,9 +2481,10 @@ class _Budget:
     deadline: float
     cut_short: bool = False
 
-    def allows(self) -> bool:
-        """True while the budget lasts; else notes that a search is left out."""
-        if time.perf_counter() < self.deadline:
+    def allows(self, expected_s: float = 0.0) -> bool:
+        """True when a search expected to take ``expected_s`` seconds ends
+        within the budget; else notes that a search is left out."""
+        if time.perf_counter() + expected_s < self.deadline:
             return True
         self.cut_short = True
         return False
@@ -2613,19 +2628,25 @@ def _localize_on_level(model: ObjectModel, scene: Scene, options: LocalizeOption
     # Colour locations compete with the alignment's by the colour under the
     # fit (see _ranked).
     colour_fitted = colour_located if colour is not None else []
+    t_fits = time.perf_counter()
     fitted = each_on_both(fit, first + colour_fitted)
+    # A round of fits: one on each core.
+    round_s = (time.perf_counter() - t_fits) / max(1, math.ceil(len(first + colour_fitted) / 2))
     fits, colour_fits = fitted[:len(first)], fitted[len(first):]
     spares: list[_Located] = []
     # A fit outside the request's region or depth range is not an answer,
     # however well it settled.
     if (contour is not None and len(located) > options.max_detections
             and not all(_settled(f) and _in_search_space(f.detection, model, camera, options)
-                        for f in fits)
-            and budget.allows()):
+                        for f in fits)):
         in_colour = colour is not None
         n_spares = SPARE_LOCATIONS_IN_COLOUR if in_colour else SPARE_LOCATIONS
         spares = _spare_locations(located, options.max_detections, n_spares)
-        fits += [f for f in each_on_both(fit, spares) if _convincing(f, in_colour, bar_share)]
+        if budget.allows(round_s * math.ceil(len(spares) / 2)):
+            fits += [f for f in each_on_both(fit, spares)
+                     if _convincing(f, in_colour, bar_share)]
+        else:
+            spares = []
     fits += _supported(colour_fits, colour_fitted, bar_share)
 
     def answer() -> list[Detection]:
@@ -2671,11 +2692,14 @@ def _localize_on_level(model: ObjectModel, scene: Scene, options: LocalizeOption
 
     go_on = fills(fits)
     least_batch = 1 if options.max_detections > 1 else 2
-    while (go_on and len(detections) < options.max_detections and unfitted
-           and budget.allows()):
+    while go_on and len(detections) < options.max_detections and unfitted:
         batch = unfitted[: max(least_batch, options.max_detections - len(detections))]
+        if not budget.allows(round_s * math.ceil(len(batch) / 2)):
+            break
         unfitted = unfitted[len(batch):]
+        t_batch = time.perf_counter()
         batch_fits = each_on_both(fit, batch)
+        round_s = (time.perf_counter() - t_batch) / math.ceil(len(batch) / 2)
         fits += batch_fits
         detections = answer()
         go_on = fills(batch_fits)

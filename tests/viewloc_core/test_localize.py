@@ -55,6 +55,7 @@ from viewloc_core.localize import (
     _contour_model,
     _convincing,
     _final_detection,
+    _finer_search_expected_s,
     _FitOptions,
     _Fitted,
     _Interior,
@@ -1243,6 +1244,15 @@ def test_a_search_that_settles_nothing_on_its_level_is_repeated_on_a_finer_one(
     assert searched == [scene.factor] and result.detections == [doubtful.detection]
     assert result.timed_out and "finer_search" not in result.timing_ms
     assert not run([doubtful, settled], LocalizeOptions(timeout_ms=1e7)).timed_out
+    assert searched == [scene.factor, 1.0]
+    # Nor when what is left of it is less than the finer search is expected
+    # to take: the level's time, features included, times the ratio of the
+    # levels' pixels (here 40 ms of features alone, times 2.56).
+    scene.features_ms = 40.0
+    assert _finer_search_expected_s(scene, 0.0) == pytest.approx(0.04 * (640 / 400) ** 2)
+    result = run([doubtful, settled], deadline=time.perf_counter() + 0.05)
+    assert searched == [scene.factor] and result.timed_out
+    assert not run([doubtful, settled], deadline=time.perf_counter() + 10.0).timed_out
     assert searched == [scene.factor, 1.0]
     # A budget spent with nothing left to start cuts nothing short.
     result = run([settled, settled_better], deadline=time.perf_counter() - 1.0)
