@@ -1278,22 +1278,42 @@ def test_a_time_budget_must_be_a_positive_number_of_ms(timeout_ms) -> None:
     assert err.value.field == "options.timeout_ms"
 
 
-def test_a_spent_time_budget_starts_no_further_search(bracket_model) -> None:
-    # A part-free 640x480 image settles nothing: without a budget the spare
-    # locations and the finer level are searched too; with a spent one
-    # neither is, and the result says so. A budget that lasts changes nothing.
+def test_a_spent_time_budget_starts_no_further_search(bracket_model, renderer,
+                                                      monkeypatch) -> None:
+    # Boxes without the bracket, 640x480: places to fit but nothing settles,
+    # so without a budget the spare locations and the finer level are
+    # searched too; with a spent one neither is (one fit, the first
+    # location's), and the result says so. A budget that lasts changes nothing.
     camera = Camera(600.0, 600.0, 319.5, 239.5, 640, 480)
-    image = np.random.default_rng(3).integers(0, 255, (480, 640), dtype=np.uint8)
+    gen = np.random.default_rng(0)
+    boxes = []
+    for _ in range(14):
+        box = trimesh.creation.box(gen.uniform([15, 10, 10], [120, 30, 30]))
+        R = trimesh.transformations.random_rotation_matrix(gen.random(3))[:3, :3]
+        u, v = gen.uniform([0, 0], [camera.width, camera.height])
+        z = gen.uniform(500, 900)
+        boxes.append((prepare(box), Pose(R, z * np.array([(u - camera.cx) / camera.fx,
+                                                            (v - camera.cy) / camera.fy, 1]))))
+    image = renderer.render_scene(boxes, camera, lights=TABLE_LIGHTS,
+                                  background_rgb=(40, 40, 40)).color
+    fitted: list[object] = []
+    final_detection = localize_module._final_detection
+    monkeypatch.setattr(localize_module, "_final_detection",
+                        lambda *args: fitted.append(args[1]) or final_detection(*args))
     free = localize(bracket_model, image, camera, LocalizeOptions(min_score=0.0))
     assert "finer_search" in free.timing_ms and not free.timed_out
+    fits_free = len(fitted)
+    assert fits_free > 2  # the first location and its spares, on both levels
     lasting = localize(bracket_model, image, camera,
                        LocalizeOptions(min_score=0.0, timeout_ms=1e7))
-    assert not lasting.timed_out
+    assert not lasting.timed_out and len(fitted) == 2 * fits_free
     assert [d.pose.t_m2c.tolist() for d in lasting.detections] == \
         [d.pose.t_m2c.tolist() for d in free.detections]
+    fitted.clear()
     spent = localize(bracket_model, image, camera,
                      LocalizeOptions(min_score=0.0, timeout_ms=1e-3))
     assert spent.timed_out and "finer_search" not in spent.timing_ms
+    assert len(fitted) == 1
 
 
 def test_the_finer_level_finds_its_features_once_and_shares_the_pyramid(monkeypatch) -> None:
