@@ -78,13 +78,27 @@ def _match(args: argparse.Namespace) -> int:
     model = load_model_dir(Path(args.model_dir))
     result = localize(model, image, camera, LocalizeOptions(
         max_detections=args.max_detections, min_score=args.min_score,
-        refine=not args.no_refine))
+        refine=not args.no_refine, timeout_ms=args.timeout_ms))
     print(json.dumps({
         "image": {"width": image.shape[1], "height": image.shape[0]},
         "detections": [detection_dict(d) for d in result.detections],
         "timing_ms": dict(result.timing_ms),
+        "timed_out": result.timed_out,
     }, indent=1))
     return 0
+
+
+def _positive_ms(text: str) -> float:
+    """A positive, finite number of milliseconds (argparse type)."""
+    import math
+
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"must be a positive number of ms, not {text!r}")
+    return value
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -125,6 +139,8 @@ def build_parser() -> argparse.ArgumentParser:
     match.add_argument("--max-detections", type=int, default=1)
     match.add_argument("--min-score", type=float, default=None)
     match.add_argument("--no-refine", action="store_true")
+    match.add_argument("--timeout-ms", type=_positive_ms, default=None,
+                       help="time budget of the search, ms (API options.timeout_ms)")
     match.set_defaults(func=_match)
     return parser
 

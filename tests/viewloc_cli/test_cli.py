@@ -43,8 +43,21 @@ def test_learn_then_match(tmp_path: Path) -> None:
          json.dumps({"fx": 600, "fy": 600, "cx": 191.5, "cy": 143.5})],
         capture_output=True, text=True, env=env, cwd=ROOT, timeout=180, check=True)
     answer = json.loads(out.stdout)
-    assert answer["image"] == {"width": 384, "height": 288}
+    assert answer["image"] == {"width": 384, "height": 288} and answer["timed_out"] is False
     det = answer["detections"][0]
     assert set(det) >= {"score", "log_probability", "model_view", "view", "similarity", "pose",
                         "refined"}
     assert abs(det["pose"]["t_mm"][2] - 650.0) < 0.1 * 650
+
+
+@pytest.mark.parametrize("bad", ["0", "-1", "nan", "soon"])
+def test_match_refuses_a_bad_time_budget(bad: str, capsys: pytest.CaptureFixture[str]) -> None:
+    from viewloc_cli.main import build_parser
+
+    with pytest.raises(SystemExit) as exit_info:
+        build_parser().parse_args(["match", "model", "scene.png", "--camera", "{}",
+                                   "--timeout-ms", bad])
+    assert exit_info.value.code == 2
+    assert "--timeout-ms: must be a positive number of ms" in capsys.readouterr().err
+    assert build_parser().parse_args(["match", "m", "s.png", "--camera", "{}",
+                                      "--timeout-ms", "80"]).timeout_ms == 80.0
