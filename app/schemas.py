@@ -303,9 +303,9 @@ class LocalizationOut(BaseModel):
     image: ImageSize
     detections: list[DetectionOut]
     timing_ms: dict[str, float] = Field(description="Has 'decode' and 'total', ms.")
-    timed_out: bool = Field(default=False, description="The time budget (options.timeout_ms) "
-                            "was spent before the search was done: the detections are what "
-                            "was found before.")
+    timed_out: bool = Field(default=False, description="A search was left out for the time "
+                            "budget (options.timeout_ms): it was not expected to end within it. "
+                            "The detections are what was found without it.")
     overlay_png_base64: str | None = Field(default=None,
         description="With ?overlay=true: the scene as PNG (base64) with each detection's "
         "projected model contour and axes (x red, y green, z blue) drawn.",
@@ -339,9 +339,9 @@ class MultiLocalizationOut(BaseModel):
     image: ImageSize
     detections: list[DetectionOut]
     timing_ms: dict[str, float]
-    timed_out: bool = Field(default=False, description="The time budget "
-                            "(options.timeout_ms) was spent before every object's search "
-                            "was done.")
+    timed_out: bool = Field(default=False, description="A search was left out for the time "
+                            "budget (options.timeout_ms): an object's (listed in 'skipped') "
+                            "or a further search of one.")
     overlay_png_base64: str | None = None
 
 

@@ -85,7 +85,7 @@ class Localization:
     #: Objects of a several-object localization that could not be searched,
     #: as the API's JSON dicts (``object_id``, ``reason``, ``detail``).
     skipped: list[dict[str, Any]] = field(default_factory=list)
-    #: The time budget (``timeout_ms``) was spent before the search was done.
+    #: A search was left out for the time budget (``timeout_ms``).
     timed_out: bool = False
 
 

@@ -798,8 +798,8 @@ class LocalizeOptions:
 
 @dataclass(frozen=True, slots=True)
 class LocalizationResult:
-    """Detections, best first, where the time went (ms), and whether the
-    time budget (``LocalizeOptions.timeout_ms``) cut the search short."""
+    """Detections, best first, where the time went (ms), and whether a
+    search was left out for the time budget (``LocalizeOptions.timeout_ms``)."""
 
     detections: list[Detection]
     timing_ms: dict[str, float] = field(default_factory=dict)
@@ -2477,7 +2477,8 @@ class _Budget:
     deadline : float
         :func:`time.perf_counter` time at which it is spent (``inf``: never).
     cut_short : bool
-        Whether a search was left out because it was spent.
+        Whether a search was left out because it was not expected to end
+        within it.
     """
 
     deadline: float
