@@ -190,6 +190,8 @@ class CoreLocalizer:
         #: The localization's time budget (``LocalizeOptions.timeout_ms``).
         self.timeout_ms = timeout_ms
         self.last_timing_ms: dict[str, float] = {}
+        #: Whether the last call left a search out for the budget.
+        self.last_timed_out = False
 
     def __call__(
         self, image: NDArray[np.uint8], camera: Camera, max_detections: int | None = None
@@ -202,6 +204,7 @@ class CoreLocalizer:
                           LocalizeOptions(max_detections=wanted, refine=self.refine,
                                           timeout_ms=self.timeout_ms))
         self.last_timing_ms = dict(result.timing_ms)
+        self.last_timed_out = result.timed_out
         return list(result.detections)
 
 
@@ -265,6 +268,8 @@ class HttpLocalizer:
         self.object_id = object_id
         self.options_json = options_json
         self.last_timing_ms: dict[str, float] = {}
+        #: Whether the last answer said a search was left out for the budget.
+        self.last_timed_out = False
 
     def __call__(
         self, image: NDArray[np.uint8], camera: Camera, max_detections: int | None = None
@@ -294,6 +299,7 @@ class HttpLocalizer:
         for key, value in (body.get("timing_ms") or {}).items():
             timing[f"server_{key}"] = float(value)
         self.last_timing_ms = timing
+        self.last_timed_out = bool(body.get("timed_out", False))
         return [detection_from_json(d) for d in body["detections"]]
 
 

@@ -157,7 +157,9 @@ def _nan_to_none(x: float) -> float | None:
 
 
 def summarise(records: list[Record], objects: dict[str, BenchObject], width: int) -> Record:
-    """Rates, g statistics, BOP average recalls, ADD-S recall and latency of some targets."""
+    """Rates, g statistics, BOP average recalls, ADD-S recall and latency of some
+    targets; ``timed_out``: how many had a search left out for the time budget
+    (only when any had)."""
     n = len(records)
     out: Record = {"targets": n}
     if n == 0:
@@ -193,6 +195,9 @@ def summarise(records: list[Record], objects: dict[str, BenchObject], width: int
     stages = stage_medians_ms(records)
     if stages:
         out["stage_median_ms"] = stages
+    timed_out = sum(1 for r in records if r.get("timed_out"))
+    if timed_out:
+        out["timed_out"] = timed_out
     out.update(right_place_errors(records))
     return out
 
@@ -374,10 +379,14 @@ def evaluate_set(
             latency_ms = (time.perf_counter() - t0) * 1000.0
             # Backends that can tell where the time went (HTTP: server timing_ms).
             breakdown = dict(getattr(learned.localize, "last_timing_ms", None) or {})
+            # Only with a time budget: the search left something out for it.
+            cut = {"timed_out": True} if getattr(learned.localize, "last_timed_out",
+                                                 False) else {}
             if k > 1:
                 records += _score_instances(posed, obj, im, dets, latency_ms, copies)
-                if breakdown:
-                    for r in records[-k:]:
+                for r in records[-k:]:
+                    r.update(cut)
+                    if breakdown:
                         r["timing_ms"] = breakdown
                 continue
             for t in im.targets:
@@ -392,10 +401,11 @@ def evaluate_set(
                             "top_score": max((d.score for d in dets), default=None),
                             "latency_ms": round(latency_ms, 3),
                             "conditions": dict(t.conditions),
+                            **cut,
                         }
                     )
                 else:
-                    records.append(score_target(t, obj, im, dets, latency_ms))
+                    records.append({**score_target(t, obj, im, dets, latency_ms), **cut})
                     if breakdown:
                         records[-1]["timing_ms"] = breakdown
     groups = []
@@ -510,6 +520,9 @@ def format_table(name: str, bench: BenchSet, result: Record | None, header: str)
     if o.get("stage_median_ms"):
         lines.append("stage medians: " + ", ".join(
             f"{stage} {ms:.1f}" for stage, ms in o["stage_median_ms"].items()) + " ms")
+    if o.get("timed_out"):
+        lines.append(f"time budget: a search left out for {o['timed_out']} of "
+                     f"{o['targets']} targets")
     if "turned_share" in o:
         lines.append(
             f"right place: {100 * o['turned_share']:.0f}% turned over {TURNED_DEG:.0f} deg"

@@ -49,7 +49,7 @@ def test_http_backend_reuses_the_learned_object_and_records_timings(
     localizer = learned.localize
     assert isinstance(localizer, HttpLocalizer)
     dets = localizer(scene, cam)
-    assert len(dets) == 1
+    assert len(dets) == 1 and localizer.last_timed_out is False
     assert np.linalg.norm(dets[0].pose.t_m2c - truth.t_m2c) < 0.05 * 700
     timing = localizer.last_timing_ms
     assert {"client_encode", "client_request", "server_total", "server_decode",
@@ -100,7 +100,7 @@ def test_core_backend_passes_max_detections_to_the_core(monkeypatch: pytest.Monk
     def fake_localize(model: object, image: object, camera: object,
                       options: viewloc_core.localize.LocalizeOptions) -> SimpleNamespace:
         wanted.append((options.max_detections, options.refine, options.timeout_ms))
-        return SimpleNamespace(detections=(), timing_ms={"total": 1.5})
+        return SimpleNamespace(detections=(), timing_ms={"total": 1.5}, timed_out=False)
 
     monkeypatch.setattr(viewloc_core.learn, "learn_from_mesh", lambda *a, **k: SimpleNamespace())
     monkeypatch.setattr(viewloc_core.localize, "localize", fake_localize)

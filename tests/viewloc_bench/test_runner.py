@@ -4,6 +4,7 @@ import hashlib
 import json
 import socket
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -343,6 +344,7 @@ def test_the_core_localizer_leaves_its_stage_times() -> None:
     image[40:80, 50:110] = 200  # something to find: edges
     localizer(image, cam)
     assert {"features", "total"} <= set(localizer.last_timing_ms)
+    assert localizer.last_timed_out is False  # no budget
     assert all(ms >= 0.0 for ms in localizer.last_timing_ms.values())
     # Asked for more detections than its own default, it still answers.
     assert isinstance(localizer(image, cam, max_detections=2), list)
@@ -465,3 +467,45 @@ def test_a_bad_time_budget_is_refused(bad: str, tmp_path: Path,
                                       capsys: pytest.CaptureFixture[str]) -> None:
     assert cli.main(["--sets", "paper", "--timeout-ms", bad, "--out", str(tmp_path)]) == 2
     assert "--timeout-ms must be a positive number of ms" in capsys.readouterr().err
+
+
+class _CutShortLocalizer:
+    """Answers as ``answer`` does, and says a search was left out for the
+    time budget on the images whose key is in ``cut`` (as the core's and
+    the service's localizers say it)."""
+
+    def __init__(self, answer: Any, key: Any, cut: set[str]) -> None:
+        self.answer, self.key, self.cut = answer, key, cut
+        self.last_timed_out = False
+
+    def __call__(self, image: np.ndarray, camera: Camera) -> list[Detection]:
+        self.last_timed_out = self.key(image) in self.cut
+        return list(self.answer(image, camera))
+
+
+class _CutShortOracle(OracleBackend):
+    """The oracle, its search cut short by the budget on one image."""
+
+    def __init__(self, bench: sets.BenchSet, cut_image: str) -> None:
+        super().__init__(bench, "", fp=True)
+        self.cut = {self._key(_load(im.path)) for im in bench.images
+                    if im.path.name == cut_image}
+
+    def learn(self, obj: sets.BenchObject) -> LearnedObject:
+        localizer = _CutShortLocalizer(super().learn(obj).localize, self._key, self.cut)
+        return LearnedObject(obj.name, localizer, 0.01, 130, 18)
+
+
+def test_images_whose_search_the_budget_cut_short_are_marked(tiny_paper_set: Path) -> None:
+    bench = sets.load_generated(tiny_paper_set)
+    cut = next(im.path.name for im in bench.images if im.targets[0].pose is not None)
+    res = runner.evaluate_set(bench, _CutShortOracle(bench, cut), log=lambda s: None)
+    assert [r["image"] for r in res["records"] if r.get("timed_out")] == [cut]
+    assert not any(r.get("timed_out") for r in res["negative_records"])
+    assert res["overall"]["timed_out"] == 1
+    table = runner.format_table("paper", bench, res, "oracle")
+    assert f"time budget: a search left out for 1 of {res['overall']['targets']} targets" in table
+    # Without a budget nothing is marked and the table says nothing of it.
+    plain = runner.evaluate_set(bench, OracleBackend(bench, "", fp=True), log=lambda s: None)
+    assert "timed_out" not in plain["overall"]
+    assert "time budget" not in runner.format_table("paper", bench, plain, "oracle")
