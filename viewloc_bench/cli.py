@@ -6,6 +6,7 @@ import argparse
 import math
 import sys
 import time
+from dataclasses import replace
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -23,10 +24,17 @@ from viewloc_bench.photos import DEFAULT_PHOTOS, PhotoBackend
 ALL_SETS = ("paper", "hard", "novel", "multi", "shop", "hard-mono", "hard-hd", "hard-photos",
             "lmo", "lmo-grey")
 
+#: A generated set's scenes rendered with objects that cast no shadows
+#: (:attr:`viewloc_bench.scenes.SceneParams.cast_shadows`): against the set
+#: itself, what the cast shadows cost.
+UNSHADOWED = "-unshadowed"
+UNSHADOWED_SETS = tuple(f"{name}{UNSHADOWED}" for name in sets.SPECS)
+
 #: Diagnostic sets run only when named in ``--sets``: LM-O's targets
 #: rendered at their true poses over their photos or over grey
-#: (:mod:`viewloc_bench.lmo_composite`).
-OPT_IN_SETS = lmo_composite.COMPOSITE_SETS
+#: (:mod:`viewloc_bench.lmo_composite`), and the generated sets without
+#: shadows.
+OPT_IN_SETS = lmo_composite.COMPOSITE_SETS + UNSHADOWED_SETS
 
 #: Sets made from a generated one: its images as a monochrome camera sees
 #: them (``-mono``, :func:`viewloc_bench.sets.monochrome`), its scenes
@@ -34,7 +42,7 @@ OPT_IN_SETS = lmo_composite.COMPOSITE_SETS
 #: megapixel camera, the part twice as many pixels across), or its scenes
 #: with each part learned from masked photos instead of its mesh
 #: (``-photos``, :mod:`viewloc_bench.photos`).
-DERIVED_SUFFIXES = ("-mono", "-hd", "-photos")
+DERIVED_SUFFIXES = ("-mono", "-hd", "-photos", UNSHADOWED)
 HD_SCALE = 2.0
 QUICK_IMAGES_PER_N = 2
 QUICK_NEGATIVES = 2
@@ -128,6 +136,8 @@ def load_sets(args: argparse.Namespace, names: list[str]) -> dict[str, sets.Benc
         if generated in sets.SPECS:
             scale = args.scale * (HD_SCALE if suffix == "-hd" else 1.0)
             spec = set_spec(generated, per_n, scale)
+            if suffix == UNSHADOWED:
+                spec = replace(spec, scene=replace(spec.scene, cast_shadows=False))
             folder = sets.generate(spec, args.seed, root, workers=args.workers)
             bench = sets.load_generated(folder)
             if suffix == "-mono":

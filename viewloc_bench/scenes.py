@@ -65,6 +65,13 @@ class SceneParams:
         Probability of fog (the paper's Fig. 4).
     margin_px : float
         The target's projection keeps this distance from the image border.
+    cast_shadows : bool
+        Whether the objects cast shadows (under POV-Ray's point lights they
+        do). False renders the same scenes with objects that cast none: a
+        diagnostic of what the cast shadows cost (bench sets
+        ``*-unshadowed``). A part floating before the floor casts a copy of
+        its outline there, about its own size in the image with the lights
+        near the camera.
     """
 
     distance_mm: tuple[float, float] = (500.0, 1100.0)
@@ -75,6 +82,7 @@ class SceneParams:
     textured_prob: float = 0.0
     fog_prob: float = 0.0
     margin_px: float = 2.0
+    cast_shadows: bool = True
 
 
 @dataclass(frozen=True, slots=True)
@@ -101,6 +109,7 @@ class Scene:
     material: str = ""
     info: dict[str, object] = field(default_factory=dict)
     copies: list[Placed] = field(default_factory=list)
+    cast_shadows: bool = True
 
     @property
     def instances(self) -> list[Placed]:
@@ -402,7 +411,8 @@ def draw_scene(
     instances = ([target] if target is not None else []) + placed_copies
     clutter = sample_clutter(rng, camera, n_clutter, params, instances, behind_only)
     return Scene(
-        camera, target, clutter, lights, bg, bg_kind, fog, material, copies=placed_copies
+        camera, target, clutter, lights, bg, bg_kind, fog, material, copies=placed_copies,
+        cast_shadows=params.cast_shadows,
     )
 
 
@@ -423,8 +433,12 @@ def scene_sdl(scene: Scene, mode: str = "color", focus: int = 0) -> str:
         parts.append(scene.fog_sdl)
         for pos, rgb in scene.lights:
             parts.append(f"light_source {{ {pv.cam_point(pos)} color rgb {pv.vec(rgb)} }}\n")
+        # POV-Ray's object modifier: the object is lit as before but casts
+        # no shadow (a shadowless light would also change its highlights).
+        modifier = "" if scene.cast_shadows else " no_shadow"
         for o in scene.instances + scene.clutter:
-            parts.append(shapes.to_pov(o.shape, o.texture, pv.pose_matrix_sdl(o.pose)) + "\n")
+            parts.append(shapes.to_pov(o.shape, o.texture + modifier, pv.pose_matrix_sdl(o.pose))
+                         + "\n")
         return "".join(parts)
 
     def flat(rgb: tuple[float, float, float]) -> str:

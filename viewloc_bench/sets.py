@@ -256,6 +256,10 @@ def spec_params(spec: SetSpec) -> dict[str, Any]:
         # Sets of one instance per image were hashed before ``copies`` existed:
         # leaving the key out keeps their cached folders' names and gt.json.
         del params["copies"]
+    if spec.scene.cast_shadows:
+        # The same for the scenes' shadows, cast in every set before the
+        # key existed.
+        del params["scene"]["cast_shadows"]
     return params
 
 

@@ -170,7 +170,8 @@ def test_composite_pastes_each_target_at_its_pose_once(tmp_path: Path, plain: bo
 def test_composite_sets_are_named_on_request_only(capsys: pytest.CaptureFixture[str]) -> None:
     from viewloc_bench import cli
 
-    assert set(cli.OPT_IN_SETS) == {"lmo-composite", "lmo-plain"}
+    assert set(cli.OPT_IN_SETS) == {"lmo-composite", "lmo-plain"} | {
+        f"{name}-unshadowed" for name in ("paper", "hard", "novel", "multi", "shop")}
     assert not set(cli.OPT_IN_SETS) & set(cli.ALL_SETS)
     assert cli.parse_args([]).sets.split(",") == list(cli.ALL_SETS)
     assert cli.main(["--sets", "lmo-pasted"]) == 2

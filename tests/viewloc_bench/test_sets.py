@@ -408,3 +408,53 @@ def test_an_hd_set_is_the_same_scenes_at_twice_the_resolution(tmp_path: Path) ->
             assert (ta.pose is None) == (tb.pose is None)
         with Image.open(b.path) as pil:
             assert pil.size == (b.camera.width, b.camera.height)
+
+
+def test_unshadowed_specs_draw_the_same_scenes_with_objects_that_cast_no_shadow() -> None:
+    spec = sets.hard_spec()
+    unshadowed = dataclasses.replace(
+        spec, scene=dataclasses.replace(spec.scene, cast_shadows=False))
+    # The sets with shadows keep their names (pinned above); without, another.
+    assert "cast_shadows" not in sets.spec_params(spec)["scene"]
+    assert sets.spec_params(unshadowed)["scene"]["cast_shadows"] is False
+    assert sets.spec_hash(unshadowed, 0) != sets.spec_hash(spec, 0)
+    assert _draws_digest(unshadowed) == _draws_digest(spec)
+    shape = shapes.SHAPES["bracket"]()
+    pts = np.asarray(shapes.to_trimesh(shape).convex_hull.vertices, dtype=np.float64)
+    drawn = [scenes.draw_scene(sets._image_rng(0, s, 0, 4, 0), s.camera, shape, pts, 4, s.scene)
+             for s in (spec, unshadowed)]
+    with_shadows, without = (scenes.scene_sdl(scene, "color") for scene in drawn)
+    objects = drawn[1].instances + drawn[1].clutter
+    assert without.count(" no_shadow") == len(objects) > 1
+    assert "no_shadow" not in with_shadows
+    assert without.replace(" no_shadow", "") == with_shadows
+    # The masks are rendered self-lit: the same with or without shadows.
+    assert scenes.scene_sdl(drawn[0], "label") == scenes.scene_sdl(drawn[1], "label")
+
+
+def test_an_unshadowed_set_is_the_same_scenes_lit_where_shadows_fell(tmp_path: Path) -> None:
+    if povray.povray_executable() is None:
+        pytest.skip("povray not installed")
+    assert "shop-unshadowed" in cli.OPT_IN_SETS and "shop-unshadowed" not in cli.ALL_SETS
+    args = cli.parse_args(["--out", str(tmp_path), "--scale", "0.25", "--images-per-n", "1",
+                           "--workers", "2"])
+    loaded = cli.load_sets(args, ["hard", "hard-unshadowed"])
+    plain, unshadowed = loaded["hard"], loaded["hard-unshadowed"]
+    assert plain.folder != unshadowed.folder
+    assert len(unshadowed.images) == len(plain.images) > 0
+    lit_more = 0
+    for a, b in zip(plain.images, unshadowed.images, strict=True):
+        assert [(t.object_name, t.group, t.conditions) for t in b.targets] == [
+            (t.object_name, t.group, t.conditions) for t in a.targets]
+        for ta, tb in zip(a.targets, b.targets, strict=True):
+            assert (ta.pose is None) == (tb.pose is None)
+            if ta.pose is not None and tb.pose is not None:
+                np.testing.assert_array_equal(ta.pose.R_m2c, tb.pose.R_m2c)
+                np.testing.assert_array_equal(ta.pose.t_m2c, tb.pose.t_m2c)
+        shadowed = np.asarray(Image.open(a.path), np.int16)
+        lit = np.asarray(Image.open(b.path), np.int16)
+        # Without shadows every surface gets all the light it got and more
+        # (anti-aliasing samples an edge pixel differently here and there).
+        assert np.percentile(lit - shadowed, 0.5) >= -2
+        lit_more += int(np.count_nonzero(lit.sum(axis=2) > shadowed.sum(axis=2) + 30))
+    assert lit_more > 0
