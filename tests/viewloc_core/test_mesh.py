@@ -105,6 +105,49 @@ def test_diameter_is_the_space_diagonal():
     assert mesh_diameter_mm(sphere) == pytest.approx(100.0, rel=1e-6)
 
 
+def test_finely_tessellated_round_parts_get_their_diameter():
+    # Every vertex of a ball lies on its hull and equally far out; a
+    # cylinder's caps put all their points on two circles (Qhull took
+    # minutes over 20,000 sections, comparing all pairs of the ball's
+    # 40,962 vertices as long).
+    ball = trimesh.creation.icosphere(subdivisions=6, radius=20.0)
+    assert len(ball.vertices) > 40_000
+    assert mesh_diameter_mm(ball) == pytest.approx(40.0, rel=2e-3)
+    assert mesh_diameter_mm(ball) <= 40.0 + 1e-9
+    cylinder = trimesh.creation.cylinder(radius=10.0, height=50.0, sections=20_000)
+    assert mesh_diameter_mm(cylinder) == pytest.approx(math.hypot(20.0, 50.0), rel=2e-3)
+
+
+def test_the_diameter_directions_lie_within_their_stated_angle():
+    from viewloc_core.view_sphere import spiral_directions
+
+    directions = spiral_directions(mesh_module.DIAMETER_DIRECTIONS)
+    probes = np.random.default_rng(3).normal(size=(50_000, 3))
+    probes /= np.linalg.norm(probes, axis=1, keepdims=True)
+    nearest_deg = np.degrees(np.arccos(np.clip((probes @ directions.T).max(axis=1), -1, 1)))
+    assert nearest_deg.max() <= mesh_module.DIAMETER_DIRECTIONS_MAX_ANGLE_DEG
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    n=st.integers(2, 400),
+    scale=st.tuples(*[st.floats(0.01, 100.0)] * 3),
+    seed=st.integers(0, 2**31 - 1),
+    limit=st.sampled_from([1, 8, 64, 4000]),
+)
+def test_max_pairwise_distance_is_the_largest_or_nearly(n, scale, seed, limit):
+    # With a low limit of points compared pair by pair, the extreme points
+    # and the pruning do the work (as for a mesh of more than 4000 points).
+    pts = np.random.default_rng(seed).normal(size=(n, 3)) * np.asarray(scale)
+    brute = max(float(np.linalg.norm(pts[i] - pts, axis=1).max()) for i in range(n))
+    found = mesh_module._max_pairwise_distance(pts, limit)
+    assert found <= brute * (1 + 1e-9)
+    cos_bound = math.cos(math.radians(mesh_module.DIAMETER_DIRECTIONS_MAX_ANGLE_DEG))
+    assert found >= brute * cos_bound * (1 - 1e-6)
+    if limit >= n:
+        assert found == pytest.approx(brute, rel=1e-12)
+
+
 def _expect_mesh_error(data, file_type, fragment):
     with pytest.raises(InvalidMeshError) as info:
         load_mesh(data, file_type=file_type)
