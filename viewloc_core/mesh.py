@@ -120,6 +120,13 @@ def mesh_diameter_mm(mesh: trimesh.Trimesh) -> float:
     return _max_pairwise_distance(np.unique(pts, axis=0))
 
 
+def mesh_reach_mm(mesh: trimesh.Trimesh) -> float:
+    """How far the mesh reaches from its origin: its farthest vertex's
+    distance, in the mesh's units (mm)."""
+    pts = np.asarray(mesh.vertices, dtype=np.float64)
+    return float(np.linalg.norm(pts, axis=1).max()) if len(pts) else 0.0
+
+
 def is_closed_outward(mesh: trimesh.Trimesh) -> bool:
     """Whether ``mesh`` is a closed surface wound consistently outward.
 

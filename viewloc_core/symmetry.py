@@ -813,8 +813,32 @@ def _declared_transform(flat: Any, to_mm: float, field: str) -> Array:
     return out
 
 
+def _check_within_reach(transforms: Sequence[Array], axis: Array | None,
+                        offset: Array | None, reach_mm: float) -> None:
+    """Refuse declared transforms that move the origin more than twice the
+    part's reach, or an axis farther than the reach from the origin (see
+    :func:`declared_symmetries`); a micrometre of slack for rounding."""
+    slack = 1e-3
+    for k, T in enumerate(transforms):
+        moved = float(np.linalg.norm(T[:3, 3]))
+        if not moved <= 2.0 * reach_mm + slack:
+            raise InvalidInputError(
+                f"symmetries_discrete[{k}] moves the part's origin by {moved:.4g} mm, more "
+                f"than twice as far as the part reaches from it ({reach_mm:.4g} mm): a "
+                "symmetry maps the part onto itself", f"symmetries_discrete[{k}]")
+    if axis is not None and offset is not None:
+        off_axis = float(np.linalg.norm(offset - (offset @ axis) * axis))
+        if not off_axis <= reach_mm + slack:
+            raise InvalidInputError(
+                f"the continuous symmetry axis passes {off_axis:.4g} mm from the part's "
+                f"origin, farther than the part reaches from it ({reach_mm:.4g} mm): the "
+                "axis of a symmetry runs through the part",
+                "symmetries_continuous[0].offset")
+
+
 def declared_symmetries(
-    info: Mapping[str, Any], *, to_mm: float = 1.0, diameter_mm: float | None = None
+    info: Mapping[str, Any], *, to_mm: float = 1.0, diameter_mm: float | None = None,
+    reach_mm: float | None = None,
 ) -> Symmetries:
     """A symmetry group declared by a user in BOP ``models_info`` form, checked strictly.
 
@@ -842,6 +866,13 @@ def declared_symmetries(
     diameter_mm : float or None
         Object diameter, sets the translation tolerance (1e-3 of it); without
         it the tolerance is 1e-3 of the largest translation or offset (>= 1 µm).
+    reach_mm : float or None
+        How far the part reaches from its origin (its farthest point's
+        distance), mm. A symmetry maps the part onto itself, so it moves
+        the origin by at most twice that, and its axis passes at most that
+        far from the origin (through the part's centroid): a declaration
+        beyond is refused (an axis declared a metre off a 50 mm part turned
+        every pose it was given a metre away). None checks nothing of it.
 
     Returns
     -------
@@ -887,6 +918,8 @@ def declared_symmetries(
         axis = axis / norm
         offset = to_mm * _declared_numbers(entry.get("offset", [0.0, 0.0, 0.0]), 3,
                                            "symmetries_continuous[0].offset")
+    if reach_mm is not None:
+        _check_within_reach(transforms, axis, offset, reach_mm)
     scale = diameter_mm if diameter_mm is not None and diameter_mm > 0 else max(
         [1e-3, *(float(np.linalg.norm(T[:3, 3])) for T in transforms),
          0.0 if offset is None else float(np.linalg.norm(offset))])

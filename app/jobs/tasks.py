@@ -34,7 +34,7 @@ def learn_mesh(
 ) -> Any:
     """Learn an object model from its uploaded mesh (paper §4.1)."""
     from viewloc_core.learn import LearningConfig, learn_from_mesh
-    from viewloc_core.mesh import load_mesh, mesh_diameter_mm
+    from viewloc_core.mesh import load_mesh, mesh_diameter_mm, mesh_reach_mm
     from viewloc_core.symmetry import declared_symmetries
 
     data, record = store.read_upload(job.object_id)
@@ -45,7 +45,7 @@ def learn_mesh(
     # Checked and converted to mm by the upload route; None means "detect".
     declared = meta.get("symmetries")
     symmetries = None if declared is None else declared_symmetries(
-        declared, diameter_mm=float(mesh_diameter_mm(mesh)))
+        declared, diameter_mm=float(mesh_diameter_mm(mesh)), reach_mm=mesh_reach_mm(mesh))
     # rng=None: the seed is ``learning.seed`` of the upload's spec (default 0).
     return learn_from_mesh(mesh, config, progress=progress, rng=None, should_stop=should_stop,
                            symmetries=symmetries)
@@ -106,4 +106,4 @@ def learn_images(
     if declared is None:
         return model
     return with_symmetries(model, declared_symmetries(
-        declared, diameter_mm=float(meta["diameter_mm"])))
+        declared, diameter_mm=float(meta["diameter_mm"]), reach_mm=float(meta["diameter_mm"])))

@@ -72,20 +72,22 @@ def mesh_file_type(filename: str | None, data: bytes) -> str:
 
 
 def declared_symmetries_meta(
-    declared: SymmetriesIn, units: str, diameter_mm: float
+    declared: SymmetriesIn, units: str, diameter_mm: float, reach_mm: float
 ) -> dict[str, Any]:
     """The declared group checked and completed, in BOP form and mm, as the job reads it.
 
     422 naming the entry (``spec.symmetries.symmetries_discrete[1]``) when
-    it is no rigid motion, moves the continuous axis, or the transforms
-    generate no finite group.
+    it is no rigid motion, moves the continuous axis, the transforms
+    generate no finite group, or one would move the part off itself
+    (``reach_mm``: how far the part reaches from its origin, mm; see
+    :func:`viewloc_core.symmetry.declared_symmetries`).
     """
     from viewloc_core.mesh import UNIT_TO_MM
     from viewloc_core.symmetry import declared_symmetries
 
     try:
         sym = declared_symmetries(declared.model_dump(), to_mm=UNIT_TO_MM[units],
-                                  diameter_mm=diameter_mm)
+                                  diameter_mm=diameter_mm, reach_mm=reach_mm)
     except InvalidInputError as exc:
         raise ProblemError(422, f"the declared symmetries are not valid: {exc.message}",
                            "validation",
@@ -160,7 +162,7 @@ def create_object(
     # Parse now so a corrupt mesh is a 422 here, not a failed job later.
     loaded = load_mesh(data, file_type, parsed.units)
     name = parsed.name or PurePath(mesh.filename or "object").stem[:200]
-    from viewloc_core.mesh import mesh_diameter_mm
+    from viewloc_core.mesh import mesh_diameter_mm, mesh_reach_mm
 
     diameter_mm = float(mesh_diameter_mm(loaded))
     meta: dict[str, Any] = {
@@ -170,7 +172,7 @@ def create_object(
     }
     if parsed.symmetries is not None:
         meta["symmetries"] = declared_symmetries_meta(parsed.symmetries, parsed.units,
-                                                      diameter_mm)
+                                                      diameter_mm, mesh_reach_mm(loaded))
     obj, job = store.create_object(
         name=name,
         source="mesh",
@@ -284,8 +286,10 @@ def create_object_from_images(
     ):
         raise ProblemError(422, "camera size does not match the images", "validation",
                            [("spec.camera", f"images are {size[0]}x{size[1]}")])
+    # The photos' origin is the point their optical axes meet, on the part:
+    # no point of the part lies farther from it than the part's diameter.
     symmetries_meta = None if parsed.symmetries is None else declared_symmetries_meta(
-        parsed.symmetries, "mm", parsed.object_diameter_mm)
+        parsed.symmetries, "mm", parsed.object_diameter_mm, parsed.object_diameter_mm)
     camera_meta = {
         "fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy,
         "dist": list(cam.dist or []), "width": size[0], "height": size[1],

@@ -152,6 +152,16 @@ def test_bad_declarations_are_422_naming_the_entry_and_store_nothing(
             # A 90° turn about x moves a continuous z axis: no finite part has both.
             ({"symmetries_discrete": [[1, 0, 0, 0, 0, 0, -1, 0, 0, 1, 0, 0, 0, 0, 0, 1]],
               "symmetries_continuous": [Z_AXIS]}, f"{d}[0]"),
+            # The box reaches 22.9 mm from its origin: no symmetry's axis runs
+            # a metre from it, or moves it by more than twice that.
+            ({"symmetries_continuous": [{"axis": [0, 0, 1], "offset": [1000, 0, 0]}]},
+             f"{cont}[0].offset"),
+            ({"symmetries_continuous": [{"axis": [0, 0, 1], "offset": [1.7e308, 1.7e308, 0]}]},
+             f"{cont}[0].offset"),
+            ({"symmetries_discrete": [[-1, 0, 0, 2e300, 0, -1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]]},
+             f"{d}[0]"),
+            ({"symmetries_discrete": [[-1, 0, 0, 46, 0, -1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]]},
+             f"{d}[0]"),
             ({"symmetries_discret": [FLIP_X]}, f"{field}.symmetries_discret"),
             ('{"symmetries": [1, 2]}', field),
             ('{"symmetries": {"symmetries_discrete": [[1e999' + ", 0" * 15 + "]]}}", f"{d}[0][0]"),
@@ -203,6 +213,11 @@ def test_from_images_takes_declared_symmetries(
                        "spec.symmetries.symmetries_continuous[0].axis")
         assert_problem(post({"symmetries_discrete": [MIRROR_X]}), 422,
                        "spec.symmetries.symmetries_discrete[0]")
+        # The photos look at a point on the part, 80 mm across: an axis 81 mm
+        # from it misses the part.
+        assert_problem(post({"symmetries_continuous": [{"axis": [0, 0, 1],
+                                                        "offset": [81.0, 0, 0]}]}), 422,
+                       "spec.symmetries.symmetries_continuous[0].offset")
         assert c.get("/v1/objects").json()["objects"] == []
         obj = _ready(c, {"plate": post({"symmetries_discrete": [TURN_Z_90]})})["plate"]
     assert obj["source"] == "images"

@@ -370,6 +370,37 @@ def test_declared_symmetries_name_the_bad_entry(info, field):
     assert err.value.field == field
 
 
+def test_declared_symmetries_must_map_the_part_onto_itself():
+    half_turn_z = Rotation.from_rotvec([0, 0, math.pi]).as_matrix()
+    # A part reaching 30 mm from its origin: a half turn about the
+    # z-parallel line through (10, 0, 0) moves the origin 20 mm.
+    sym = declared_symmetries({"symmetries_discrete": [_flat(half_turn_z, (20.0, 0, 0))]},
+                              reach_mm=30.0)
+    assert len(sym.discrete) == 2
+    # Its axis through (31, 0, 0) would move it 62 mm: off the part.
+    for t in ((62.0, 0.0, 0.0), (2e300, 0.0, 0.0), (1.7e308, 1.7e308, 0.0)):
+        with pytest.raises(InvalidInputError) as err:
+            declared_symmetries({"symmetries_discrete": [_flat(half_turn_z, t)]},
+                                reach_mm=30.0)
+        assert err.value.field == "symmetries_discrete[0]"
+    # Any point of the axis may be given: (0, 0, 1 m) on the z axis is the z axis.
+    far_on_axis = declared_symmetries(
+        {"symmetries_continuous": [{"axis": [0, 0, 1], "offset": [0, 0, 1000.0]}]},
+        reach_mm=30.0)
+    assert far_on_axis.is_continuous
+    for offset, to_mm in (([31.0, 0, 0], 1.0), ([1000.0, 0, 0], 1.0),
+                          ([1.7e308, 1.7e308, 0], 1.0), ([1e308, 0, 0], 10.0)):
+        with pytest.raises(InvalidInputError) as err:
+            declared_symmetries(
+                {"symmetries_continuous": [{"axis": [0, 0, 1], "offset": offset}]},
+                to_mm=to_mm, reach_mm=30.0)
+        assert err.value.field == "symmetries_continuous[0].offset"
+    # Without a reach nothing of it is checked (trusted BOP files, old jobs).
+    assert declared_symmetries(
+        {"symmetries_continuous": [{"axis": [0, 0, 1], "offset": [1000.0, 0, 0]}]}
+    ).is_continuous
+
+
 def test_declared_groups_are_closed_or_refused_without_delay():
     # 240 turns a little off 90° each (0.006° apart) generate no finite
     # group; one by one comparisons took over ten minutes to say so.
