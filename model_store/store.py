@@ -679,6 +679,32 @@ class ModelStore:
         with self._tx() as conn:
             conn.execute("DELETE FROM runners WHERE owner=?", (owner,))
 
+    def release_jobs(self, owner: str) -> list[str]:
+        """Hand the ``running`` jobs of a runner that stops cleanly back to the queue.
+
+        The runner stopped them (a deploy, a restart), not they it: their
+        start is not counted against them, so a job is not failed by
+        :meth:`recover_orphaned_jobs` for two restarts in a row. Jobs asked
+        to cancel are left to that recovery, which cancels them.
+
+        Returns
+        -------
+        list of str
+            The ids of the jobs re-queued.
+        """
+        with self._tx() as conn:
+            rows = conn.execute(
+                "SELECT job_id FROM jobs WHERE state='running' AND owner=? "
+                "AND NOT cancel_requested", (owner,)).fetchall()
+            for row in rows:
+                conn.execute(
+                    "UPDATE jobs SET state='queued', owner=NULL, pid=NULL, progress=0, "
+                    "attempts=max(attempts - 1, 0), "
+                    "stage='re-queued: the service stopped' WHERE job_id=?",
+                    (row["job_id"],),
+                )
+        return [row["job_id"] for row in rows]
+
     def recover_orphaned_jobs(
         self, stale_after_s: float = 30.0, max_attempts: int = 2
     ) -> list[tuple[str, str]]:

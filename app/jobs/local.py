@@ -105,8 +105,12 @@ class LocalJobRunner:
                 r.process.terminate()
         for r in running:
             r.process.join(timeout_s)
-        # Unregistering first makes our own running jobs orphans that the
-        # recovery below hands back to the queue for the next start.
+        # The jobs stopped here go back to the queue for the next start,
+        # their start not counted (a restart is not their failure).
+        # Unregistering makes any left running (asked to cancel) orphans,
+        # which the recovery below settles.
+        for job_id in self.store.release_jobs(self.owner):
+            log.info("job %s re-queued: the service stopped", job_id)
         self.store.unregister_runner(self.owner)
         self.store.recover_orphaned_jobs(self.stale_after_s)
 

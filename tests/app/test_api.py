@@ -384,6 +384,60 @@ def test_restart_while_a_job_runs_leaves_nothing_stuck(
         assert ModelStore(root).get_job(job_id).attempts == 2
 
 
+def _serve_until_learning(root: Path, job_id: str | None) -> tuple[subprocess.Popen[bytes], str]:
+    """A service process on ``root`` once the job (``job_id``, or one made
+    by uploading a mesh) is learning: (the process, the job's id)."""
+    port = free_port()
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "tests.app.serve_for_test", "--port", str(port),
+         "--data-dir", str(root)], env=env, cwd=Path(__file__).resolve().parents[2])
+    url = f"http://127.0.0.1:{port}"
+    deadline = time.monotonic() + 30
+    while True:
+        try:
+            if httpx.get(url + "/readyz").status_code == 200:
+                break
+        except httpx.TransportError:
+            pass
+        assert time.monotonic() < deadline and proc.poll() is None
+        time.sleep(0.1)
+    with httpx.Client(base_url=url, timeout=30) as c:
+        if job_id is None:
+            job_id = str(upload_mesh(c).json()["job"]["job_id"])
+        deadline = time.monotonic() + 30
+        while c.get(f"/v1/jobs/{job_id}").json()["progress"] <= 0:
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+    return proc, job_id
+
+
+def test_clean_restarts_while_a_job_runs_do_not_fail_it(
+    tmp_path: Path, make_server: Callable[..., LiveServer]
+) -> None:
+    # A deploy stops the service with SIGTERM: the job it stops goes back to
+    # the queue without its start counted, however often that happens (a
+    # killed service counts it: test_restart_while_a_job_runs_...).
+    root = tmp_path / "var"
+    job_id = None
+    for _ in range(3):
+        proc, job_id = _serve_until_learning(root, job_id)
+        try:
+            proc.send_signal(signal.SIGTERM)
+            # uvicorn shuts down, then raises the signal again for its caller.
+            assert proc.wait(30) in (0, -signal.SIGTERM)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+        stopped = ModelStore(root).get_job(job_id)
+        assert (stopped.state, stopped.attempts) == ("queued", 0)
+    srv = make_server(tasks=SLEEPY)
+    with httpx.Client(base_url=srv.url, timeout=30) as c:
+        job = wait_job(c, str(job_id))
+        assert job["state"] == "succeeded", job
+        assert ModelStore(root).get_job(str(job_id)).attempts == 1
+
+
 @pytest.mark.parametrize("units", ["cm"])
 def test_units_scale_the_mesh(make_server: Callable[..., LiveServer], units: str) -> None:
     srv = make_server(tasks=SLEEPY)

@@ -126,6 +126,30 @@ def test_jobs_of_a_dead_runner_are_requeued_then_failed(tmp_path: Path) -> None:
     assert store.get_object(obj.object_id).state == "failed"
 
 
+def test_jobs_a_runner_stops_cleanly_go_back_to_the_queue_uncounted(tmp_path: Path) -> None:
+    store = ModelStore(tmp_path)
+    obj, job = _new(store)
+    _, other = _new(store)
+    # Three clean restarts in a row (more than recover_orphaned_jobs allows
+    # starts) do not fail the job: each start is handed back.
+    for _ in range(3):
+        claimed = store.claim_next_job("c" * 32)
+        assert claimed is not None and claimed.job_id == job.job_id and claimed.attempts == 1
+        store.update_progress(job.job_id, 0.6, "rendering")
+        assert store.release_jobs("c" * 32) == [job.job_id]
+        back = store.get_job(job.job_id)
+        assert (back.state, back.attempts, back.progress) == ("queued", 0, 0.0)
+        assert store.get_object(obj.object_id).state == "learning"
+    # Only the stopping runner's jobs, and not those asked to cancel.
+    assert store.claim_next_job("d" * 32) is not None
+    assert store.get_job(other.job_id).state == "queued"
+    assert store.claim_next_job("c" * 32).job_id == other.job_id  # type: ignore[union-attr]
+    store.request_cancel(other.job_id)
+    assert store.release_jobs("c" * 32) == []
+    assert store.get_job(other.job_id).state == "running"
+    assert store.get_job(job.job_id).state == "running"
+
+
 def test_live_runner_keeps_its_jobs(tmp_path: Path) -> None:
     store = ModelStore(tmp_path)
     _, job = _new(store)
