@@ -102,6 +102,7 @@ def load_mesh(
     loaded = _parse(data, kind)
     mesh = _as_single_mesh(loaded, kind)
     _check_raw(mesh, kind)
+    _check_not_huge(mesh, UNIT_TO_MM[units])
     mesh.merge_vertices()
     _drop_repeated_faces(mesh)
     scale = UNIT_TO_MM[units]
@@ -301,6 +302,24 @@ def _check_raw(mesh: trimesh.Trimesh, kind: str) -> None:
                                _FIELD)
     if faces.min() < 0 or faces.max() >= len(vertices):
         raise InvalidMeshError("the mesh has faces referring to missing vertices", _FIELD)
+
+
+def _check_not_huge(mesh: trimesh.Trimesh, to_mm: float) -> None:
+    """Refuse, before its vertices are merged, a mesh larger than
+    :func:`_check_size` allows or farther from its origin than it allows
+    of any part: merging rounds the coordinates to integers, which
+    overflow beyond about 1e10 (a box scaled by 1e10 was called degenerate)."""
+    vertices = np.asarray(mesh.vertices, dtype=np.float64) * to_mm
+    extent = float(np.max(vertices.max(axis=0) - vertices.min(axis=0)))
+    if extent > MAX_DIAMETER_MM:
+        raise InvalidMeshError(
+            f"the mesh is at least {extent / 1000.0:.3g} m across, more than the limit of "
+            f"{MAX_DIAMETER_MM / 1000.0:.0f} m; check the units", _FIELD)
+    farthest = float(np.max(np.abs(vertices)))
+    if farthest > MAX_ORIGIN_DISTANCE_DIAMETERS * MAX_DIAMETER_MM:
+        raise InvalidMeshError(
+            f"the mesh lies {farthest:.3g} mm from its origin: its coordinates cannot be "
+            "kept precisely; move the part near its origin", _FIELD)
 
 
 def _drop_repeated_faces(mesh: trimesh.Trimesh) -> None:

@@ -201,6 +201,12 @@ def test_a_part_drawn_far_from_its_origin_is_refused_and_one_near_it_kept():
     moved = _box()
     moved.apply_translation((1e30, 0.0, 0.0))
     _expect_mesh_error(_export(moved, "ply"), "ply", "from its origin")
+    # Scaled beyond what merging the vertices rounds to integers without
+    # overflow, a box was called degenerate: it is too large, and says so.
+    for scale in (1e10, 1e20, 1e30):
+        grown = _box()
+        grown.apply_scale(scale)
+        _expect_mesh_error(_export(grown, "ply"), "ply", "check the units")
     # 9,000 diameters out: kept, at its size.
     near = _box()
     diameter = float(np.linalg.norm(EXTENTS))
