@@ -344,11 +344,10 @@ def test_operations_metrics_request_id_and_openapi(make_server: Callable[..., Li
     assert {"Problem", "ObjectOut", "JobOut", "LocalizationOut", "DetectionOut"} <= set(schemas)
 
 
-def test_restart_while_a_job_runs_leaves_nothing_stuck(
-    tmp_path: Path, make_server: Callable[..., LiveServer]
-) -> None:
+def _serve_until_learning(root: Path, job_id: str | None) -> tuple[subprocess.Popen[bytes], str]:
+    """A service process on ``root`` once the job (``job_id``, or one made
+    by uploading a mesh) is learning: (the process, the job's id)."""
     port = free_port()
-    root = tmp_path / "var"
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
     proc = subprocess.Popen(
         [sys.executable, "-m", "tests.app.serve_for_test", "--port", str(port),
@@ -365,12 +364,24 @@ def test_restart_while_a_job_runs_leaves_nothing_stuck(
             assert time.monotonic() < deadline and proc.poll() is None
             time.sleep(0.1)
         with httpx.Client(base_url=url, timeout=30) as c:
-            created = upload_mesh(c).json()
-            job_id = created["job"]["job_id"]
+            if job_id is None:
+                job_id = str(upload_mesh(c).json()["job"]["job_id"])
             deadline = time.monotonic() + 30
             while c.get(f"/v1/jobs/{job_id}").json()["progress"] <= 0:
                 assert time.monotonic() < deadline
                 time.sleep(0.05)
+    except BaseException:
+        proc.kill()
+        raise
+    return proc, job_id
+
+
+def test_restart_while_a_job_runs_leaves_nothing_stuck(
+    tmp_path: Path, make_server: Callable[..., LiveServer]
+) -> None:
+    root = tmp_path / "var"
+    proc, job_id = _serve_until_learning(root, None)
+    try:
         proc.send_signal(signal.SIGKILL)
         proc.wait(10)
     finally:
@@ -382,34 +393,6 @@ def test_restart_while_a_job_runs_leaves_nothing_stuck(
         job = wait_job(c, job_id)
         assert job["state"] == "succeeded", job
         assert ModelStore(root).get_job(job_id).attempts == 2
-
-
-def _serve_until_learning(root: Path, job_id: str | None) -> tuple[subprocess.Popen[bytes], str]:
-    """A service process on ``root`` once the job (``job_id``, or one made
-    by uploading a mesh) is learning: (the process, the job's id)."""
-    port = free_port()
-    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "tests.app.serve_for_test", "--port", str(port),
-         "--data-dir", str(root)], env=env, cwd=Path(__file__).resolve().parents[2])
-    url = f"http://127.0.0.1:{port}"
-    deadline = time.monotonic() + 30
-    while True:
-        try:
-            if httpx.get(url + "/readyz").status_code == 200:
-                break
-        except httpx.TransportError:
-            pass
-        assert time.monotonic() < deadline and proc.poll() is None
-        time.sleep(0.1)
-    with httpx.Client(base_url=url, timeout=30) as c:
-        if job_id is None:
-            job_id = str(upload_mesh(c).json()["job"]["job_id"])
-        deadline = time.monotonic() + 30
-        while c.get(f"/v1/jobs/{job_id}").json()["progress"] <= 0:
-            assert time.monotonic() < deadline
-            time.sleep(0.05)
-    return proc, job_id
 
 
 def test_clean_restarts_while_a_job_runs_do_not_fail_it(
