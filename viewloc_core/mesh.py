@@ -372,7 +372,7 @@ def _check_size(mesh: trimesh.Trimesh) -> None:
             f"{MIN_DIAMETER_MM} mm; check the units (a mesh in metres needs units \"m\")",
             _FIELD,
         )
-    farthest = float(np.max(np.linalg.norm(np.asarray(mesh.vertices), axis=1)))
+    farthest = mesh_reach_mm(mesh)
     if farthest > MAX_ORIGIN_DISTANCE_DIAMETERS * diameter:
         raise InvalidMeshError(
             f"the mesh lies up to {farthest:.3g} mm from its origin, more than "
