@@ -6,7 +6,6 @@ import argparse
 import math
 import sys
 import time
-from dataclasses import replace
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -137,7 +136,7 @@ def load_sets(args: argparse.Namespace, names: list[str]) -> dict[str, sets.Benc
             scale = args.scale * (HD_SCALE if suffix == "-hd" else 1.0)
             spec = set_spec(generated, per_n, scale)
             if suffix == UNSHADOWED:
-                spec = replace(spec, scene=replace(spec.scene, cast_shadows=False))
+                spec = sets.unshadowed(spec)
             folder = sets.generate(spec, args.seed, root, workers=args.workers)
             bench = sets.load_generated(folder)
             if suffix == "-mono":

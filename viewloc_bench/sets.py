@@ -249,6 +249,13 @@ class BenchSet:
     meta: dict[str, Any] = field(default_factory=dict)
 
 
+def unshadowed(spec: SetSpec) -> SetSpec:
+    """The set's scenes with objects that cast no shadow
+    (:attr:`viewloc_bench.scenes.SceneParams.cast_shadows`): the same draws,
+    another folder."""
+    return replace(spec, scene=replace(spec.scene, cast_shadows=False))
+
+
 def spec_params(spec: SetSpec) -> dict[str, Any]:
     """The parameters that name a set (hashed) and are recorded in its ``gt.json``."""
     params = asdict(spec)

@@ -412,8 +412,7 @@ def test_an_hd_set_is_the_same_scenes_at_twice_the_resolution(tmp_path: Path) ->
 
 def test_unshadowed_specs_draw_the_same_scenes_with_objects_that_cast_no_shadow() -> None:
     spec = sets.hard_spec()
-    unshadowed = dataclasses.replace(
-        spec, scene=dataclasses.replace(spec.scene, cast_shadows=False))
+    unshadowed = sets.unshadowed(spec)
     # The sets with shadows keep their names (pinned above); without, another.
     assert "cast_shadows" not in sets.spec_params(spec)["scene"]
     assert sets.spec_params(unshadowed)["scene"]["cast_shadows"] is False
